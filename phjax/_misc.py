@@ -1,0 +1,58 @@
+"""NaN-safe elementwise helpers (the double-``where`` pattern).
+
+Each helper returns finite values *and* finite gradients at its singular point, so that
+``jax.grad`` through degenerate inputs (zero vectors, coincident points) never yields NaN.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+
+def safe_sqrt(x: ArrayLike) -> Array:
+    """``sqrt(max(x, 0))`` with gradient 0 (not inf) at ``x <= 0``."""
+    x = jnp.asarray(x)
+    pos = x > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1)), 0)
+
+
+def safe_norm(x: Float[ArrayLike, "... n"], axis: int = -1, keepdims: bool = False) -> Array:
+    """Euclidean norm with gradient 0 at the zero vector."""
+    x = jnp.asarray(x)
+    return safe_sqrt(jnp.sum(x * x, axis=axis, keepdims=keepdims))
+
+
+def safe_div(num: ArrayLike, den: ArrayLike, fallback: ArrayLike = 0.0) -> Array:
+    """``num / den`` where ``den != 0``, else ``fallback``; gradients stay finite."""
+    num, den = jnp.asarray(num), jnp.asarray(den)
+    ok = den != 0
+    return jnp.where(ok, num / jnp.where(ok, den, 1), fallback)
+
+
+def safe_normalize(
+    x: Float[ArrayLike, "... n"], fallback: Float[ArrayLike, "... n"] | None = None
+) -> Array:
+    """``x / |x|``; where ``|x| == 0`` return ``fallback`` (default: ``x`` itself, i.e. 0)."""
+    x = jnp.asarray(x)
+    n = safe_norm(x, keepdims=True)
+    ok = n > 0
+    out = x / jnp.where(ok, n, 1)
+    if fallback is None:
+        return out
+    return jnp.where(ok, out, jnp.broadcast_to(jnp.asarray(fallback, out.dtype), out.shape))
+
+
+def safe_atan2(y: ArrayLike, x: ArrayLike) -> Array:
+    """``atan2(y, x)`` returning 0 with zero gradient at the origin."""
+    y, x = jnp.asarray(y), jnp.asarray(x)
+    ok = (x != 0) | (y != 0)
+    return jnp.where(ok, jnp.arctan2(jnp.where(ok, y, 0), jnp.where(ok, x, 1)), 0)
+
+
+def unit_perpendicular(u: Float[ArrayLike, "... 3"]) -> Array:
+    """A unit vector perpendicular to the unit vector ``u`` (piecewise smooth in ``u``)."""
+    u = jnp.asarray(u)
+    k = jnp.argmin(jnp.abs(u), axis=-1)
+    e = jnp.eye(3, dtype=u.dtype)[k]
+    return safe_normalize(jnp.cross(u, e))

@@ -1,0 +1,37 @@
+"""Test configuration: float64 everywhere (library code stays dtype-generic), shared data paths."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import jax
+import pytest
+from hypothesis import HealthCheck, settings
+
+jax.config.update("jax_enable_x64", True)
+
+settings.register_profile(
+    "phjax",
+    deadline=None,
+    max_examples=int(os.environ.get("PHJAX_HYPOTHESIS_EXAMPLES", "60")),
+    suppress_health_check=[HealthCheck.too_slow],
+    derandomize=True,
+)
+settings.load_profile("phjax")
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("PHJAX_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+def shared_path(*parts: str) -> Path:
+    """Path inside ``../shared/data``; skips the test (with the reason) when it is absent."""
+    p = SHARED_DATA.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"shared data not found: {p} (expected ../shared/data beside the repository)")
+    return p
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    return shared_path()
