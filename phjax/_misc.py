@@ -51,8 +51,16 @@ def safe_atan2(y: ArrayLike, x: ArrayLike) -> Array:
 
 
 def unit_perpendicular(u: Float[ArrayLike, "... 3"]) -> Array:
-    """A unit vector perpendicular to the unit vector ``u`` (piecewise smooth in ``u``)."""
+    """A unit vector perpendicular to the unit vector ``u``.
+
+    ``normalize(u x a)`` for a fixed generic direction ``a``, switching to a second direction
+    ``b`` (perpendicular to ``a``) within 30 degrees of ``+-a``. The result is smooth in ``u``
+    except on that cone, which no coordinate axis or coordinate plane touches.
+    """
     u = jnp.asarray(u)
-    k = jnp.argmin(jnp.abs(u), axis=-1)
-    e = jnp.eye(3, dtype=u.dtype)[k]
-    return safe_normalize(jnp.cross(u, e))
+    a = jnp.asarray([0.36, 0.48, 0.8], u.dtype)  # unit, generic
+    b = jnp.asarray([0.8, -0.6, 0.0], u.dtype)  # unit, perpendicular to a
+    ua = jnp.cross(u, jnp.broadcast_to(a, u.shape))
+    ub = jnp.cross(u, jnp.broadcast_to(b, u.shape))
+    use_a = safe_norm(ua, keepdims=True) >= 0.5
+    return safe_normalize(jnp.where(use_a, ua, ub))

@@ -1,0 +1,5 @@
+"""``python -m phjax``: the command-line interface (see ``phjax --help``)."""
+
+from .cli import main
+
+raise SystemExit(main())
