@@ -40,6 +40,7 @@ __all__ = [
     "one_euro_numpy",
     "linear_slerp",
     "cubic_spline",
+    "kalman_extrapolation",
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
@@ -339,3 +340,54 @@ def cubic_spline(
         flips = np.sum(q_out[1:] * q_out[:-1], axis=-1) < 0
         q_out = q_out * np.concatenate([[1.0], np.cumprod(np.where(flips, -1.0, 1.0))])[:, None]
     return p_out, q_out
+
+
+def kalman_extrapolation(
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    quaternions: Float[ArrayLike, "n 4"],
+    render_times: Float[ArrayLike, " m"],
+    *,
+    config=None,
+) -> tuple[Float[Array, "m 3"], Float[Array, "m 4"]]:
+    """Causal Kalman constant-velocity extrapolation (the usual predictive baseline).
+
+    The filter of :mod:`phjax.kalman` runs over the measurements; each render time ``tau`` shows
+    the mean prediction of the latest filtered state (``t_k <= tau``) at ``tau``: linear in
+    position, constant angular velocity in orientation, with a jump at every camera frame.
+    Orientation-only input (all positions NaN) tracks orientation and returns NaN positions.
+
+    Arguments:
+        config: :class:`phjax.KalmanConfig` (default noise model).
+    """
+    from .kalman import KalmanConfig, kalman_filter, predict_pose
+
+    config = KalmanConfig() if config is None else config
+    t = np.asarray(times, np.float64)
+    p = np.asarray(positions, np.float64)
+    q = np.asarray(quaternions, np.float64)
+    r = np.asarray(render_times, np.float64)
+    orientation_only = not np.any(np.isfinite(p))
+    if orientation_only:
+        p = np.where(np.isfinite(q).all(-1, keepdims=True), 0.0, np.nan) * np.ones((1, 3))
+    origin = t[0]
+    dtype = jnp.zeros((), float).dtype
+    return _kalman_extrapolation_core(
+        config, *(jnp.asarray(x, dtype) for x in (t - origin, p, q, r - origin)),
+        orientation_only=orientation_only,
+    )
+
+
+def _kalman_extrapolation_core(config, t, p, q, r, *, orientation_only):
+    from .kalman import kalman_filter, predict_pose
+
+    states, _ = kalman_filter(config, t, p, q)
+    idx = jnp.searchsorted(t, r, side="right") - 1
+    sel = jax.tree.map(lambda x: x[jnp.maximum(idx, 0)], states)
+    pos, quat, _, _ = jax.vmap(lambda s, tau: predict_pose(config, s, tau))(sel, r)
+    bad = (idx < 0) | ~sel.initialized
+    nan = jnp.where(bad, jnp.nan, 0.0)[:, None]
+    pos = pos + nan
+    if orientation_only:
+        pos = jnp.full_like(pos, jnp.nan)
+    return pos, quat + nan

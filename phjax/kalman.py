@@ -87,7 +87,7 @@ __all__ = [
 
 _ORDER = {"cv": 2, "ca": 3}
 # Defaults for the highest-derivative spectral density, see the KalmanConfig docstring.
-_DEFAULT_POS_Q = {"cv": 1.0, "ca": 20.0}
+_DEFAULT_POS_Q = {"cv": 0.03, "ca": 20.0}
 
 
 class KalmanConfig(eqx.Module):
@@ -101,12 +101,12 @@ class KalmanConfig(eqx.Module):
         model: ``"cv"`` (constant velocity) or ``"ca"`` (constant acceleration) position model.
             Static.
         pos_process_noise: spectral density of the white highest derivative. CV: acceleration,
-            m^2/s^3, default 1.0 (RMS head acceleration ~2 m/s^2 over ~0.25 s). CA: jerk,
-            m^2/s^5, default 20.0 (RMS jerk ~9 m/s^3 over ~0.25 s). ``None`` picks the default
-            of ``model``.
+            m^2/s^3, default 0.03 (lowest prediction RMSE on the development set with a 30 Hz,
+            5 mm sensor: ``experiments/tune_baselines.py``). CA: jerk, m^2/s^5, default 20.0
+            (RMS jerk ~9 m/s^3 over ~0.25 s). ``None`` picks the default of ``model``.
         pos_meas_noise: position measurement std per axis, m (default 0.005).
-        rot_process_noise: angular-acceleration spectral density, rad^2/s^3 (default 10.0:
-            RMS angular acceleration ~10 rad/s^2 over ~0.1 s).
+        rot_process_noise: angular-acceleration spectral density, rad^2/s^3 (default 0.3,
+            tuned like ``pos_process_noise`` with a 1 degree sensor).
         rot_meas_noise: orientation measurement std per (world) axis, rad (default 1 degree).
         init_pos_vel_std: initial velocity std, m/s (default 0.5).
         init_pos_acc_std: initial acceleration std (CA only), m/s^2 (default 3.0).
@@ -121,7 +121,7 @@ class KalmanConfig(eqx.Module):
     model: str = eqx.field(static=True, default="cv")
     pos_process_noise: float | None = None
     pos_meas_noise: float = 0.005
-    rot_process_noise: float = 10.0
+    rot_process_noise: float = 0.3
     rot_meas_noise: float = math.radians(1.0)
     init_pos_vel_std: float = 0.5
     init_pos_acc_std: float = 3.0

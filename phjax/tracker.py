@@ -65,15 +65,16 @@ class TrackerConfig(eqx.Module):
         kalman: the filter's noise model (:class:`phjax.KalmanConfig`).
         horizon: duration of each render segment, s: the stream reaches the filter's prediction
             ``horizon`` seconds after each camera frame. The main smoothness knob: longer is
-            smoother (lower jerk), shorter follows the filter more closely. Default 0.05 s
-            (1.5 frames at 30 Hz).
+            smoother (lower jerk), shorter follows the filter more closely. Default 0.025 s
+            (tuned on the development set at 30 Hz: RMSE 1.06x and RMS jerk 0.26-0.34x of the
+            filter's own constant-velocity extrapolation; see ``experiments/tune_baselines.py``).
         coast_time: after a segment ends without a new frame, keep moving with the end
             velocities for this long, s (default 0.1).
         stop_time: then let the velocities decay with this time constant, s (default 0.05).
     """
 
     kalman: KalmanConfig = eqx.field(default_factory=KalmanConfig)
-    horizon: float = 0.05
+    horizon: float = 0.025
     coast_time: float = 0.1
     stop_time: float = 0.05
 

@@ -1,0 +1,60 @@
+"""The development set: ground-truth trajectories from ../shared/data (loaders for every format).
+
+Each entry is ``(name, kind, times, positions, quaternions)``; ``kind`` is ``"camera"`` (TUM
+RGB-D), ``"object"`` (TUM VI hand-held rig) or ``"head"`` (VR head traces; orientation only
+except CWI, which has positions). Long recordings are cut into windows of ``max_seconds``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from phjax import io
+from phjax.datasets import shared_data_dir
+
+
+def _window(name, kind, traj, max_seconds, max_windows):
+    t, p, q = traj.times, traj.positions, traj.quaternions
+    out = []
+    start = t[0]
+    k = 0
+    while start < t[-1] and k < max_windows:
+        sel = (t >= start) & (t < start + max_seconds)
+        if sel.sum() > 50:
+            out.append((f"{name}#{k}", kind, t[sel], p[sel], q[sel]))
+            k += 1
+        start += max_seconds
+    return out
+
+
+def load_devset(max_seconds: float = 30.0, max_windows: int = 1, root: Path | None = None):
+    """Load the development set (raises FileNotFoundError when ../shared/data is absent)."""
+    root = shared_data_dir() if root is None else root
+    if root is None:
+        raise FileNotFoundError("../shared/data not found (set PHJAX_SHARED_DATA)")
+    seqs = []
+    for f in sorted((root / "tum_rgbd_groundtruth").glob("*-groundtruth.txt")):
+        seqs += _window(f.name.split("-")[0], "camera", io.read_tum(f), max_seconds, max_windows)
+    for f in sorted((root / "tum_vi_room_groundtruth").glob("*.csv")):
+        seqs += _window(f.stem.split("_")[0], "object", io.read_euroc(f), max_seconds, max_windows)
+    for f in sorted((root / "vr_corbillon_multiviewpoint360").glob("user*_quaternion.txt")):
+        seqs += _window("corbillon-" + f.stem.split("_")[0], "head", io.read_corbillon(f),
+                        max_seconds, max_windows)
+    seg = root / "vr_hachaj_head_gestures" / "segment_continuous.log"
+    if seg.exists():
+        seqs += _window("hachaj-continuous", "head", io.read_hachaj(seg), max_seconds, max_windows)
+    cwi = sorted((root / "vr_cwi_6dof_navigation").glob("H*_nav.csv"))
+    for f in cwi:
+        parts = io.read_cwi(f)
+        for pid in sorted(parts)[:2]:
+            seqs += _window(f"cwi-{f.stem.split('_')[0]}-{pid}", "head", parts[pid], max_seconds,
+                            max_windows)
+    return seqs
+
+
+if __name__ == "__main__":
+    for name, kind, t, p, q in load_devset():
+        print(f"{name:40s} {kind:7s} {t[-1] - t[0]:6.1f} s  {len(t):6d} samples  "
+              f"positions: {np.isfinite(p).any()}")
