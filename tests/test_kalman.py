@@ -153,7 +153,7 @@ def close_rel(a, b, tol):
 
 
 def test_config_defaults_and_validation():
-    assert KalmanConfig().pos_process_noise == 1.0
+    assert KalmanConfig().pos_process_noise == 0.03  # tuned default (experiments/tune_baselines.py)
     assert KalmanConfig(model="ca").pos_process_noise == 20.0
     assert KalmanConfig(model="ca", pos_process_noise=3.0).pos_process_noise == 3.0
     with pytest.raises(ValueError, match="model"):

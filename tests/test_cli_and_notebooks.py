@@ -1,0 +1,82 @@
+"""The command line (demo, demo-curve, smooth, evaluate) and the notebooks run end to end."""
+
+import os
+import runpy
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import REPO, shared_path
+from phjax import io
+from phjax.cli import main
+
+
+def test_demo_curve_on_tum(capsys):
+    shared_path("tum_rgbd_groundtruth", "fr1_xyz-groundtruth.txt")
+    assert main(["demo-curve", "--segments", "400", "--samples", "10"]) == 0
+    out = capsys.readouterr().out
+    assert "fr1_xyz" in out and "end points interpolated: True" in out
+    assert "arc length per segment" in out and "curvature" in out
+
+
+def test_demo_prints_table_and_writes_plot(tmp_path, capsys):
+    png = tmp_path / "eval.png"
+    assert main(["demo", "--duration", "6", "--plot", str(png), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    for name in ["phjax (causal)", "phjax (offline)", "kalman-cv extrapolation", "one-euro + hold",
+                 "raw hold", "cubic spline (scipy)", "linear + slerp"]:
+        assert name in out
+    assert png.exists() and png.stat().st_size > 10_000
+
+
+def test_evaluate_on_real_tum_file(tmp_path, capsys):
+    gt = shared_path("tum_rgbd_groundtruth", "fr1_xyz-groundtruth.txt")
+    traj = io.read_tum(gt)
+    short = tmp_path / "short.txt"
+    sel = traj.times < traj.times[0] + 5
+    io.write_tum(short, io.Trajectory(traj.times[sel], traj.positions[sel], traj.quaternions[sel]))
+    assert main(["evaluate", str(short), "--plot", "", "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "pos RMSE [mm]" in out
+
+
+@pytest.mark.parametrize("offline", [False, True])
+def test_smooth_roundtrip(tmp_path, offline):
+    t = np.arange(0, 3, 1 / 30)
+    p = np.stack([np.sin(t), np.cos(t), 0.1 * t], -1)
+    q = np.tile([1.0, 0, 0, 0], (len(t), 1))
+    p[5] = np.nan  # a lost frame
+    src, dst = tmp_path / "in.csv", tmp_path / "out.txt"
+    io.write_csv(src, io.Trajectory(t, p, q))
+    args = ["smooth", str(src), "-o", str(dst), "--rate", "90"] + (["--offline"] if offline else [])
+    assert main(args) == 0
+    out = io.read_tum(dst)
+    assert abs(np.median(np.diff(out.times)) - 1 / 90) < 1e-9
+    assert np.all(np.isfinite(out.positions))
+    ref = np.stack([np.sin(out.times), np.cos(out.times), 0.1 * out.times], -1)
+    assert np.abs(out.positions - ref).max() < 0.05
+
+
+def test_bad_input_gives_clear_error(tmp_path, capsys):
+    bad = tmp_path / "bad.txt"
+    bad.write_text("1.0 2.0 3.0\n")
+    assert main(["smooth", str(bad), "-o", str(tmp_path / "o.txt")]) == 2
+    assert "error" in capsys.readouterr().err
+
+
+def test_help_texts():
+    for cmd in [[], ["demo"], ["evaluate"], ["smooth"], ["demo-curve"]]:
+        res = subprocess.run([sys.executable, "-m", "phjax", *cmd, "--help"], capture_output=True,
+                             text=True, cwd=REPO)
+        assert res.returncode == 0 and "usage" in res.stdout
+
+
+@pytest.mark.parametrize("nb", sorted((Path(REPO) / "notebooks").glob("*.py")), ids=lambda p: p.name)
+def test_notebook_runs(nb, tmp_path, monkeypatch):
+    monkeypatch.setenv("PHJAX_NOTEBOOK_FIGURES", str(tmp_path))
+    runpy.run_path(str(nb), run_name="__main__")
+    assert any(tmp_path.iterdir())
+    _ = os
