@@ -360,25 +360,16 @@ def kalman_extrapolation(
     Arguments:
         config: :class:`phjax.KalmanConfig` (default noise model).
     """
-    from .kalman import KalmanConfig, kalman_filter, predict_pose
+    from .kalman import KalmanConfig
+    from .tracker import _run_recording
 
     config = KalmanConfig() if config is None else config
-    t = np.asarray(times, np.float64)
-    p = np.asarray(positions, np.float64)
-    q = np.asarray(quaternions, np.float64)
-    r = np.asarray(render_times, np.float64)
-    orientation_only = not np.any(np.isfinite(p))
-    if orientation_only:
-        p = np.where(np.isfinite(q).all(-1, keepdims=True), 0.0, np.nan) * np.ones((1, 3))
-    origin = t[0]
-    dtype = jnp.zeros((), float).dtype
-    return _kalman_extrapolation_core(
-        config, *(jnp.asarray(x, dtype) for x in (t - origin, p, q, r - origin)),
-        orientation_only=orientation_only,
-    )
+    return _run_recording(_kalman_extrapolation_core, config, times, positions, quaternions,
+                          render_times, None)
 
 
-def _kalman_extrapolation_core(config, t, p, q, r, *, orientation_only):
+@jax.jit
+def _kalman_extrapolation_core(config, t, p, q, r):
     from .kalman import kalman_filter, predict_pose
 
     states, _ = kalman_filter(config, t, p, q)
@@ -387,7 +378,4 @@ def _kalman_extrapolation_core(config, t, p, q, r, *, orientation_only):
     pos, quat, _, _ = jax.vmap(lambda s, tau: predict_pose(config, s, tau))(sel, r)
     bad = (idx < 0) | ~sel.initialized
     nan = jnp.where(bad, jnp.nan, 0.0)[:, None]
-    pos = pos + nan
-    if orientation_only:
-        pos = jnp.full_like(pos, jnp.nan)
-    return pos, quat + nan
+    return pos + nan, quat + nan

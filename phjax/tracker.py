@@ -268,12 +268,19 @@ def _prepare_recording(times, positions, quaternions, render_times):
     return times - origin, positions, quaternions, render_times - origin, orientation_only
 
 
-def _dtype_of(config_dtype):
-    return jnp.zeros((), float).dtype if config_dtype is None else config_dtype
+def _run_recording(core, config, times, positions, quaternions, render_times, dtype):
+    """Validate and normalise a recording (outside jit), run a jitted ``core`` on it."""
+    t, p, q, r, orientation_only = _prepare_recording(times, positions, quaternions, render_times)
+    dtype = jnp.zeros((), float).dtype if dtype is None else dtype
+    out_p, out_q = core(config, *(jnp.asarray(x, dtype) for x in (t, p, q, r)))
+    if orientation_only:
+        out_p = jnp.full_like(out_p, jnp.nan)
+    return out_p, out_q
 
 
 @jax.jit
 def _track_core(config, times, positions, quaternions, render_times):
+    config = TrackerConfig() if config is None else config
     dtype = times.dtype
     state0 = tracker_init(config, times[0], dtype)
 
@@ -320,17 +327,12 @@ def track(
     Returns:
         ``(positions (M, 3), quaternions (M, 4))``; NaN before the first valid measurement.
     """
-    config = TrackerConfig() if config is None else config
-    t, p, q, r, orientation_only = _prepare_recording(times, positions, quaternions, render_times)
-    dtype = _dtype_of(dtype)
-    out_p, out_q = _track_core(config, *(jnp.asarray(x, dtype) for x in (t, p, q, r)))
-    if orientation_only:
-        out_p = jnp.full_like(out_p, jnp.nan)
-    return out_p, out_q
+    return _run_recording(_track_core, config, times, positions, quaternions, render_times, dtype)
 
 
 @jax.jit
 def _reconstruct_core(config, times, positions, quaternions, render_times):
+    config = TrackerConfig() if config is None else config
     dtype = times.dtype
     filtered, _ = kalman_filter(config.kalman, times, positions, quaternions)
     sm = rts_smooth(config.kalman, filtered)
@@ -377,10 +379,4 @@ def reconstruct(
     Returns:
         ``(positions (M, 3), quaternions (M, 4))``.
     """
-    config = TrackerConfig() if config is None else config
-    t, p, q, r, orientation_only = _prepare_recording(times, positions, quaternions, render_times)
-    dtype = _dtype_of(dtype)
-    out_p, out_q = _reconstruct_core(config, *(jnp.asarray(x, dtype) for x in (t, p, q, r)))
-    if orientation_only:
-        out_p = jnp.full_like(out_p, jnp.nan)
-    return out_p, out_q
+    return _run_recording(_reconstruct_core, config, times, positions, quaternions, render_times, dtype)
