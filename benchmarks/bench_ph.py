@@ -60,7 +60,7 @@ import scipy  # noqa: E402
 from scipy.interpolate import CubicHermiteSpline  # noqa: E402
 
 import phjax  # noqa: E402
-from reference_ph_numpy import hermite_quintic_np, position_np  # noqa: E402
+from reference_ph_numpy import data_perpendicular_np, hermite_quintic_np, position_np  # noqa: E402
 
 DTYPE = np.dtype(ARGS.dtype)
 
@@ -186,7 +186,8 @@ def section_construction():
     def np_fixed(p0, p1, d0, d1, a, b):
         # same work as phjax with fixed angles and its default axis u = d0/|d0|
         u = d0 / np.linalg.norm(d0, axis=-1, keepdims=True)
-        return hermite_quintic_np(p0, p1, d0, d1, a, 0.0, b, u)
+        return hermite_quintic_np(p0, p1, d0, d1, a, 0.0, b, u,
+                                  perpendicular=data_perpendicular_np(p0, p1, d1))
 
     for n in sizes:
         np_args = hermite_batch(n, ARGS.seed)

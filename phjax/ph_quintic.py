@@ -546,11 +546,11 @@ def near_optimal_angles(
 @jax.jit
 def _near_optimal_jit(p0, p1, d0, d1, axis):
     p0, p1, d0, d1, frame = _prepare(p0, p1, d0, d1, axis)
-    return _cc_angles(p0, p1, d0, d1, frame)
+    return _cc_angles(p0, p1, d0, d1, None if axis is None else frame)
 
 
-def _cc_angles(p0, p1, d0, d1, frame):
-    """CC angles in the convention of ``frame``.
+def _cc_angles(p0, p1, d0, d1, frame=None):
+    """CC angles in the convention of ``frame`` (``None``: the data-driven convention).
 
     They are computed in the data-driven convention (``u = d0/|d0|``), where ``e`` and ``f`` below
     have closed forms without cancellation (``f`` is exactly 0 for aligned tangents), and then
@@ -598,7 +598,7 @@ def _cc_angles(p0, p1, d0, d1, frame):
     ci = quat_mul(c, jnp.asarray(_I, c.dtype))
     alpha = safe_atan2(dot(bq, ci), dot(bq, c))
     phi0, phi2 = alpha - half, alpha + half
-    if frame is data:
+    if frame is None:
         return phi0, phi2
     # convert to frame's convention: the same curve has B_frame = B_data exp(gamma i)
     A0 = quat_mul(a0, _qexp_i(phi0))
@@ -664,7 +664,7 @@ def _hermite_impl(p0, p1, d0, d1, phi0, phi2, phi1, axis) -> PHQuintic:
     p0, p1, d0, d1, frame = _prepare(p0, p1, d0, d1, axis)
     dtype = p0.dtype
     if phi0 is None:
-        phi0, phi2 = _cc_angles(p0, p1, d0, d1, frame)
+        phi0, phi2 = _cc_angles(p0, p1, d0, d1, None if axis is None else frame)
     phi0, phi1, phi2 = (jnp.broadcast_to(jnp.asarray(x, dtype), batch) for x in (phi0, phi1, phi2))
     a0, a2 = _ends(p0, p1, d0, d1, frame)
     A0 = quat_mul(a0, _qexp_i(phi0))

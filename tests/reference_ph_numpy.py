@@ -111,6 +111,23 @@ def unit_perpendicular_np(u: np.ndarray) -> np.ndarray:
     return c / np.linalg.norm(c, axis=-1, keepdims=True)
 
 
+def data_perpendicular_np(p0, p1, d1):
+    """phjax's second-branch rule: ``m`` = the unit part of ``(p1 - p0) + d1`` perpendicular to
+    ``u`` (data-derived, so fixed angles stay rotation-covariant); :func:`unit_perpendicular_np`
+    where that part vanishes. Returns a rule ``u -> m`` for ``perpendicular=``."""
+
+    def rule(u):
+        v = (np.asarray(p1) - np.asarray(p0)) + np.asarray(d1)
+        vp = v - _dot(v, u, keepdims=True) * u
+        scale = (np.linalg.norm(np.asarray(p1) - np.asarray(p0), axis=-1, keepdims=True)
+                 + np.linalg.norm(d1, axis=-1, keepdims=True))
+        n = np.linalg.norm(vp, axis=-1, keepdims=True)
+        ok = n > 1e-9 * scale
+        return np.where(ok, vp / np.where(ok, n, 1), unit_perpendicular_np(u))
+
+    return rule
+
+
 def unit_perpendicular_argmin_np(u: np.ndarray) -> np.ndarray:
     """Alternative rule ``normalize(u x e_k)`` with ``k = argmin_k |u_k|`` (earlier phjax rule)."""
     k = np.argmin(np.abs(u), axis=-1)

@@ -7,17 +7,6 @@ import phjax as pj
 import reference_ph_numpy as ref
 
 
-def _data_perpendicular(p0, p1, d1):
-    """phjax's second-branch direction: the part of (p1 - p0) + d1 perpendicular to u."""
-
-    def rule(u):
-        v = (p1 - p0) + d1
-        vp = v - np.sum(v * u, -1, keepdims=True) * u
-        return vp / np.linalg.norm(vp, axis=-1, keepdims=True)
-
-    return rule
-
-
 @pytest.mark.parametrize("branch", ["generic", "second_branch"])
 def test_control_points_and_closed_forms_match_numpy_reference(branch):
     rng = np.random.default_rng(21)
@@ -29,7 +18,7 @@ def test_control_points_and_closed_forms_match_numpy_reference(branch):
         d1 = -axis * rng.uniform(0.5, 2, size=(n, 1)) + 0.1 * rng.normal(size=(n, 3))
     phi0, phi1, phi2 = rng.uniform(-np.pi, np.pi, size=(3, n))
     A0, A1, A2, P = ref.hermite_quintic_np(p0, p1, d0, d1, phi0, phi1, phi2, axis,
-                                           perpendicular=_data_perpendicular(p0, p1, d1))
+                                           perpendicular=ref.data_perpendicular_np(p0, p1, d1))
     c = pj.hermite_quintic(p0, p1, d0, d1, phi0, phi2, phi1=phi1, axis=axis)
     scale = 1 + np.abs(P).max(axis=(-1, -2), keepdims=True)
     np.testing.assert_allclose(np.asarray(c.control_points) / scale, P / scale, atol=1e-12)
