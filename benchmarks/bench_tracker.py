@@ -61,6 +61,12 @@ def main(argv=None):
         out = pj.tracker_sample(cfg, box["s"], box["t"] + 0.004)
         jax.block_until_ready(out)
 
+    t_dev = jnp.asarray(0.004, jnp.float32)
+
+    def smp_dev():
+        out = pj.tracker_sample(cfg, box["s"], t_dev)
+        jax.block_until_ready(out)
+
     floor = jax.jit(lambda x: x + 1)
     x0 = jnp.zeros(())
 
@@ -69,12 +75,13 @@ def main(argv=None):
 
     rows = [("jit dispatch floor", *_median_us(flo, args.repeats), "-"),
             ("tracker_update (camera frame)", *_median_us(upd, args.repeats), "<= 50"),
-            ("tracker_sample (render sample)", *_median_us(smp, args.repeats), "<= 10")]
+            ("tracker_sample (render sample, Python float time)", *_median_us(smp, args.repeats), "<= 10"),
+            ("tracker_sample (render sample, device-array time)", *_median_us(smp_dev, args.repeats), "<= 10")]
     print("| call | median [us] | p90 [us] | target [us] |\n|---|---|---|---|")
     for name, med, p90, target in rows:
         print(f"| {name} | {med:.1f} | {p90:.1f} | {target} |")
     print(f"\n(update compiled {tracker.tracker_update._cache_size()}x, "
-          f"sample {tracker.tracker_sample._cache_size()}x over {args.repeats + 1} calls)\n")
+          f"sample {tracker._sample_render._cache_size()}x over {args.repeats + 1} calls)\n")
 
     dur = args.minutes * 60
     gt_t, gt_p, gt_q = simulate.synthetic_head_motion(duration=dur, rate=120.0, seed=0)

@@ -89,6 +89,10 @@ class TrackerState(eqx.Module):
         curve: position segment on the parameter ``(t - t0) / duration``.
         rotation: orientation segment on the same parameter.
         started: whether a valid measurement has been seen (before that samples are NaN).
+        render: everything a render sample needs, packed in one vector (segment start and
+            duration, ``started``, the power basis of ``curve``, the rotation curve, and the
+            end pose and velocities and the coasting parameters of the config of the last
+            update), so that :func:`tracker_sample` passes a single array to its kernel.
     """
 
     filter: KalmanState
@@ -97,6 +101,28 @@ class TrackerState(eqx.Module):
     curve: PHQuintic
     rotation: QuaternionHermite
     started: Bool[Array, ""]
+    render: Float[Array, "49"]
+
+
+# layout of TrackerState.render
+_R = dict(t0=(0, 1), dur=(1, 2), started=(2, 3), coef=(3, 21), q0=(21, 25), w1=(25, 28),
+          w2=(28, 31), w3=(31, 34), p_end=(34, 37), v_end=(37, 40), q_end=(40, 44), w_end=(44, 47),
+          coast=(47, 48), stop=(48, 49))
+
+
+def _make_state(config, kf, t0, duration, curve, rotation, started) -> TrackerState:
+    """A :class:`TrackerState` with the packed render vector of its segment."""
+    dtype = t0.dtype
+    coef = curve._power(0)
+    one = jnp.ones((), dtype)
+    p_end = jnp.sum(coef, axis=-2)
+    v_end = jnp.sum(coef * jnp.arange(6, dtype=dtype)[:, None], axis=-2) / duration
+    parts = [t0[None], duration[None], started.astype(dtype)[None], coef.reshape(18),
+             rotation.q0, rotation.w1, rotation.w2, rotation.w3, p_end, v_end,
+             rotation.rotation(one), rotation.angular_velocity(one),
+             jnp.asarray(config.coast_time, dtype)[None], jnp.asarray(config.stop_time, dtype)[None]]
+    render = jnp.concatenate([jnp.asarray(x, dtype) for x in parts])
+    return TrackerState(kf, t0, duration, curve, rotation, started, render)
 
 
 def _segment(p0, v0, q0, w0, p1, v1, q1, w1, duration):
@@ -124,40 +150,54 @@ def tracker_init(config: TrackerConfig | None = None, t: float = 0.0, dtype=None
     q = jnp.asarray([1.0, 0, 0, 0], dtype)
     one = jnp.ones((), dtype)
     curve, rot = _segment(z3, z3, q, z3, z3, z3, q, z3, one)
-    return TrackerState(kf, jnp.asarray(t, dtype), one, curve, rot, jnp.asarray(False))
+    return _make_state(config, kf, jnp.asarray(t, dtype), one, curve, rot, jnp.asarray(False))
 
 
-def _evaluate(config: TrackerConfig, state: TrackerState, tau):
-    """Rendered position, velocity, orientation, angular velocity at time(s) ``tau``."""
-    dtype = state.t0.dtype
+def _evaluate(config: TrackerConfig, state: TrackerState, tau, velocities: bool = True):
+    """Rendered position, velocity, orientation, angular velocity at time(s) ``tau``
+    (velocities are ``None`` when not requested)."""
+    return _eval_render(state.render, tau, velocities)
+
+
+def _eval_render(render, tau, velocities: bool = True):
+    r = {k: render[a:b] for k, (a, b) in _R.items()}
+    coast_time, stop_time = r["coast"][0], r["stop"][0]
+    dtype = render.dtype
     tau = jnp.asarray(tau, dtype)
-    dur = state.duration
-    s = jnp.clip((tau - state.t0) / dur, 0, 1)
-    p_in = state.curve.position(s)
-    v_in = state.curve.hodograph(s) / dur
-    q_in = state.rotation.rotation(s)
-    w_in = state.rotation.angular_velocity(s)
+    t0, dur, started = r["t0"][0], r["dur"][0], r["started"][0] > 0
+    c = r["coef"].reshape(6, 3)
+    rot = QuaternionHermite(r["q0"], r["w1"], r["w2"], r["w3"], dur)
+    s = jnp.clip((tau - t0) / dur, 0, 1)[..., None]
+    p_in = c[5]
+    for j in range(4, -1, -1):
+        p_in = p_in * s + c[j]
+    q_in = rot.rotation(s[..., 0])
     # beyond the segment end: coast, then come to rest smoothly
-    one = jnp.ones((), dtype)
-    p_end, v_end = state.curve.position(one), state.curve.hodograph(one) / dur
-    q_end, w_end = state.rotation.rotation(one), state.rotation.angular_velocity(one)
-    delta = jnp.maximum(tau - (state.t0 + dur), 0)
-    c, ts = config.coast_time, config.stop_time
-    late = jnp.maximum(delta - c, 0)
-    decay = jnp.exp(-late / ts)
-    disp = jnp.minimum(delta, c) + ts * (1 - decay)
-    factor = jnp.where(delta > c, decay, 1.0)
-    p_out = p_end + v_end * disp[..., None]
-    v_out = v_end * factor[..., None]
-    q_out = quat_mul(quat_from_rotvec(w_end * disp[..., None]), q_end)
-    w_out = w_end * factor[..., None]
-    inside = (tau <= state.t0 + dur)[..., None]
-    p = jnp.where(inside, p_in, p_out)
-    v = jnp.where(inside, v_in, v_out)
-    q = jnp.where(inside, q_in, q_out)
-    w = jnp.where(inside, w_in, w_out)
-    nan = jnp.where(state.started, 0.0, jnp.nan).astype(dtype)
-    return p + nan, v + nan, q + nan, w + nan
+    delta = jnp.maximum(tau - (t0 + dur), 0)
+    decay = jnp.exp(-jnp.maximum(delta - coast_time, 0) / stop_time)
+    disp = (jnp.minimum(delta, coast_time) + stop_time * (1 - decay))[..., None]
+    p_out = r["p_end"] + r["v_end"] * disp
+    q_out = quat_mul(quat_from_rotvec(r["w_end"] * disp), r["q_end"])
+    inside = (tau <= t0 + dur)[..., None]
+    nan = jnp.where(started, 0.0, jnp.nan).astype(dtype)
+    p = jnp.where(inside, p_in, p_out) + nan
+    q = jnp.where(inside, q_in, q_out) + nan
+    if not velocities:
+        return p, None, q, None
+    v_in = 5 * c[5]
+    for j in range(4, 0, -1):
+        v_in = v_in * s + j * c[j]
+    w_in = rot.angular_velocity(s[..., 0])
+    factor = jnp.where(delta > coast_time, decay, 1.0)[..., None]
+    v = jnp.where(inside, v_in / dur, r["v_end"] * factor) + nan
+    w = jnp.where(inside, w_in, r["w_end"] * factor) + nan
+    return p, v, q, w
+
+
+@jax.jit
+def _sample_render(render, t_render):
+    p, _, q, _ = _eval_render(render, t_render, velocities=False)
+    return p, q
 
 
 def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion):
@@ -181,8 +221,8 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion)
     w_r = jnp.where(fresh, z, w_r)
     curve, rot = _segment(p_r, v_r, q_r, w_r, p_T, v_T, q_T, w_T, h)
     rebuild = used & kf.initialized
-    new = TrackerState(kf, t, h, curve, rot, state.started | kf.initialized)
-    keep = TrackerState(kf, state.t0, state.duration, state.curve, state.rotation, state.started)
+    new = _make_state(config, kf, t, h, curve, rot, state.started | kf.initialized)
+    keep = eqx.tree_at(lambda x: x.filter, state, kf)
     return jax.tree.map(lambda a, b: jnp.where(rebuild, a, b), new, keep)
 
 
@@ -211,23 +251,25 @@ def tracker_update(
     return _update(config, state, t, position, quaternion)
 
 
-@jax.jit
 def tracker_sample(
     config: TrackerConfig, state: TrackerState, t_render: Float[ArrayLike, "*T"]
 ) -> tuple[Float[Array, "*T 3"], Float[Array, "*T 4"]]:
     """Rendered pose at render time(s) ``t_render >= `` the last update time.
 
     Arguments:
-        config: tracker configuration.
+        config: tracker configuration (kept for symmetry with :func:`tracker_update`; the
+            coasting parameters in effect are those of the config of the last update).
         state: current state.
-        t_render: render time(s), s, any shape.
+        t_render: render time(s), s, any shape (pass a device array in a render loop to avoid
+            a host-to-device conversion per call).
 
     Returns:
         ``(position, quaternion)`` with shapes ``(*T, 3)`` and ``(*T, 4)``; NaN before the first
         valid measurement.
     """
-    p, _, q, _ = _evaluate(config, state, t_render)
-    return p, q
+    # one compiled kernel on the packed render vector (few arguments: low dispatch cost)
+    del config  # the coasting parameters were packed at the last update
+    return _sample_render(state.render, t_render)
 
 
 # ---------------------------------------------------------------------------------- batch API
@@ -293,7 +335,7 @@ def _track_core(config, times, positions, quaternions, render_times):
     idx = jnp.searchsorted(times, render_times, side="right") - 1
     before = idx < 0
     sel = jax.tree.map(lambda x: x[jnp.maximum(idx, 0)], states)
-    p, _, q, _ = jax.vmap(lambda s, tau: _evaluate(config, s, tau))(sel, render_times)
+    p, _, q, _ = jax.vmap(lambda s, tau: _evaluate(config, s, tau, velocities=False))(sel, render_times)
     nan = jnp.where(before, jnp.nan, 0.0)[:, None].astype(dtype)
     return p + nan, q + nan
 

@@ -95,7 +95,7 @@ def test_track_equals_streaming_loop(head):
     np.testing.assert_allclose(np.asarray(out_q), Q, atol=1e-9)
     # static shapes: the update and sample functions compiled once for all those frames
     assert tracker.tracker_update._cache_size() == 1
-    assert tracker.tracker_sample._cache_size() == 1
+    assert tracker._sample_render._cache_size() == 1
 
 
 def test_causality(head):
