@@ -30,7 +30,11 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
 from ._misc import safe_div, safe_norm
-from .metrics import _np_from_rotvec, _np_qconj, _np_qmul, _np_qnormalize, _np_rotvec
+from ._np_quat import np_from_rotvec as _np_from_rotvec
+from ._np_quat import np_qconj as _np_qconj
+from ._np_quat import np_qmul as _np_qmul
+from ._np_quat import np_qnormalize as _np_qnormalize
+from ._np_quat import np_rotvec as _np_rotvec
 from .quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
 from .resample import interpolate_poses, valid_rows
 

@@ -189,7 +189,9 @@ def plot_evaluation(result: EvaluationResult, path: str | Path, methods: list[st
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .metrics import _np_qconj, _np_qmul, _np_rotvec
+    from ._np_quat import np_qconj as _np_qconj
+    from ._np_quat import np_qmul as _np_qmul
+    from ._np_quat import np_rotvec as _np_rotvec
 
     default = ["phjax (causal)", "kalman-cv extrapolation", "one-euro + hold", "phjax (offline)",
                "cubic spline (scipy)"]

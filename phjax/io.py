@@ -70,6 +70,10 @@ from typing import Any, NamedTuple
 import numpy as np
 from jaxtyping import Float
 
+from ._np_quat import np_axis_quat as _np_axis_quat
+from ._np_quat import np_hemisphere as _np_hemisphere
+from ._np_quat import np_qmul as _np_quat_mul
+
 __all__ = [
     "Trajectory",
     "TrajectoryFormatError",
@@ -182,32 +186,6 @@ def _err(path: PathLike, line: int | None, what: str) -> TrajectoryFormatError:
 # ----------------------------------------------------------------------------------------------
 # NumPy quaternion helpers (float64 regardless of JAX's x64 flag)
 # ----------------------------------------------------------------------------------------------
-
-
-def _np_quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    a, u = p[..., :1], p[..., 1:]
-    b, v = q[..., :1], q[..., 1:]
-    w = a * b - np.sum(u * v, axis=-1, keepdims=True)
-    xyz = a * v + b * u + np.cross(u, v)
-    return np.concatenate([w, xyz], axis=-1)
-
-
-def _np_axis_quat(axis: int, angle: np.ndarray) -> np.ndarray:
-    """Quaternions of rotations by ``angle`` (rad) about basis axis 0/1/2."""
-    angle = np.asarray(angle, dtype=np.float64)
-    q = np.zeros(angle.shape + (4,))
-    q[..., 0] = np.cos(angle / 2)
-    q[..., 1 + axis] = np.sin(angle / 2)
-    return q
-
-
-def _np_hemisphere(q: np.ndarray) -> np.ndarray:
-    """NumPy twin of :func:`phjax.quaternion.quat_hemisphere_continuity` along axis 0."""
-    if q.shape[0] < 2:
-        return q
-    dots = np.sum(q[1:] * q[:-1], axis=-1)
-    s = np.concatenate([[1.0], np.cumprod(np.where(dots < 0, -1.0, 1.0))])
-    return q * s[:, None]
 
 
 # ----------------------------------------------------------------------------------------------

@@ -21,6 +21,11 @@ from typing import NamedTuple
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
+from ._np_quat import np_qconj as _np_qconj
+from ._np_quat import np_qmul as _np_qmul
+from ._np_quat import np_qnormalize as _np_qnormalize
+from ._np_quat import np_rotvec as _np_rotvec
+
 __all__ = [
     "Metric",
     "Latency",
@@ -58,38 +63,6 @@ _NAN = Metric(float("nan"), 0)
 # ----------------------------------------------------------------------------------------------
 # float64 NumPy quaternion helpers (wxyz); also used by the NumPy reference baselines
 # ----------------------------------------------------------------------------------------------
-
-
-def _np_qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    a, u = p[..., :1], p[..., 1:]
-    b, v = q[..., :1], q[..., 1:]
-    w = a * b - np.sum(u * v, axis=-1, keepdims=True)
-    return np.concatenate([w, a * v + b * u + np.cross(u, v)], axis=-1)
-
-
-def _np_qconj(q: np.ndarray) -> np.ndarray:
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
-
-
-def _np_qnormalize(q: np.ndarray) -> np.ndarray:
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
-def _np_rotvec(q: np.ndarray) -> np.ndarray:
-    """Shortest-arc rotation vector (angle in ``[0, pi]`` times axis) of unit quaternions."""
-    q = np.where(q[..., :1] < 0, -q, q)
-    n = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
-    angle = 2 * np.arctan2(n, q[..., :1])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        scale = np.where(n > 1e-12, angle / np.where(n > 0, n, 1), 2.0)
-    return scale * q[..., 1:]
-
-
-def _np_from_rotvec(r: np.ndarray) -> np.ndarray:
-    """Unit quaternion of rotation vectors (angle ``|r|`` about ``r / |r|``)."""
-    half = 0.5 * np.linalg.norm(r, axis=-1, keepdims=True)
-    sinc = np.sinc(half / np.pi)  # sin(half) / half
-    return np.concatenate([np.cos(half), 0.5 * sinc * r], axis=-1)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -12,7 +12,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .metrics import _np_from_rotvec, _np_qconj, _np_qmul
+from ._np_quat import np_from_rotvec as _np_from_rotvec
+from ._np_quat import np_qconj as _np_qconj
+from ._np_quat import np_qmul as _np_qmul
 from .quaternion import quat_from_rotvec, quat_mul
 from .resample import interpolate_poses
 

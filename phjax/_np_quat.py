@@ -1,0 +1,59 @@
+"""Float64 NumPy twins of a few quaternion operations (wxyz), for the I/O, metric and baseline
+code that works outside JAX (so its precision does not depend on JAX's x64 setting)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def np_qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product."""
+    a, u = p[..., :1], p[..., 1:]
+    b, v = q[..., :1], q[..., 1:]
+    w = a * b - np.sum(u * v, axis=-1, keepdims=True)
+    return np.concatenate([w, a * v + b * u + np.cross(u, v)], axis=-1)
+
+
+def np_qconj(q: np.ndarray) -> np.ndarray:
+    """Conjugate."""
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def np_qnormalize(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion."""
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def np_rotvec(q: np.ndarray) -> np.ndarray:
+    """Shortest-arc rotation vector (angle in ``[0, pi]`` times axis) of unit quaternions."""
+    q = np.where(q[..., :1] < 0, -q, q)
+    n = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
+    angle = 2 * np.arctan2(n, q[..., :1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(n > 1e-12, angle / np.where(n > 0, n, 1), 2.0)
+    return scale * q[..., 1:]
+
+
+def np_from_rotvec(r: np.ndarray) -> np.ndarray:
+    """Unit quaternion of rotation vectors (angle ``|r|`` about ``r / |r|``)."""
+    half = 0.5 * np.linalg.norm(r, axis=-1, keepdims=True)
+    sinc = np.sinc(half / np.pi)  # sin(half) / half
+    return np.concatenate([np.cos(half), 0.5 * sinc * r], axis=-1)
+
+
+def np_axis_quat(axis: int, angle: np.ndarray) -> np.ndarray:
+    """Quaternions of rotations by ``angle`` (rad) about basis axis 0/1/2."""
+    angle = np.asarray(angle, dtype=np.float64)
+    q = np.zeros(angle.shape + (4,))
+    q[..., 0] = np.cos(angle / 2)
+    q[..., 1 + axis] = np.sin(angle / 2)
+    return q
+
+
+def np_hemisphere(q: np.ndarray) -> np.ndarray:
+    """NumPy twin of :func:`phjax.quaternion.quat_hemisphere_continuity` along axis 0."""
+    if q.shape[0] < 2:
+        return q
+    dots = np.sum(q[1:] * q[:-1], axis=-1)
+    s = np.concatenate([[1.0], np.cumprod(np.where(dots < 0, -1.0, 1.0))])
+    return q * s[:, None]
