@@ -31,6 +31,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._misc import safe_div, safe_norm
 from ._np_quat import np_from_rotvec as _np_from_rotvec
+from ._np_quat import np_hemisphere as _np_hemisphere
 from ._np_quat import np_qconj as _np_qconj
 from ._np_quat import np_qmul as _np_qmul
 from ._np_quat import np_qnormalize as _np_qnormalize
@@ -341,8 +342,7 @@ def cubic_spline(
     else:
         spline = RotationSpline(tq, Rotation.from_quat(wxyz_to_xyzw(q)))
         q_out = xyzw_to_wxyz(spline(np.clip(r, tq[0], tq[-1])).as_quat())
-        flips = np.sum(q_out[1:] * q_out[:-1], axis=-1) < 0
-        q_out = q_out * np.concatenate([[1.0], np.cumprod(np.where(flips, -1.0, 1.0))])[:, None]
+        q_out = _np_hemisphere(q_out)
     return p_out, q_out
 
 
@@ -375,11 +375,11 @@ def kalman_extrapolation(
 @jax.jit
 def _kalman_extrapolation_core(config, t, p, q, r):
     from .kalman import kalman_filter, predict_pose
+    from .tracker import _latest_states
 
     states, _ = kalman_filter(config, t, p, q)
-    idx = jnp.searchsorted(t, r, side="right") - 1
-    sel = jax.tree.map(lambda x: x[jnp.maximum(idx, 0)], states)
+    sel, before = _latest_states(t, states, r)
     pos, quat, _, _ = jax.vmap(lambda s, tau: predict_pose(config, s, tau))(sel, r)
-    bad = (idx < 0) | ~sel.initialized
+    bad = before | ~sel.initialized
     nan = jnp.where(bad, jnp.nan, 0.0)[:, None]
     return pos + nan, quat + nan

@@ -332,12 +332,17 @@ def _track_core(config, times, positions, quaternions, render_times):
         return new, new
 
     _, states = jax.lax.scan(body, state0, (times, positions, quaternions))
-    idx = jnp.searchsorted(times, render_times, side="right") - 1
-    before = idx < 0
-    sel = jax.tree.map(lambda x: x[jnp.maximum(idx, 0)], states)
+    sel, before = _latest_states(times, states, render_times)
     p, _, q, _ = jax.vmap(lambda s, tau: _evaluate(config, s, tau, velocities=False))(sel, render_times)
     nan = jnp.where(before, jnp.nan, 0.0)[:, None].astype(dtype)
     return p + nan, q + nan
+
+
+def _latest_states(times, states, render_times):
+    """For each render time the stacked state of the last measurement with ``t <= tau``
+    (causal), and whether ``tau`` precedes every measurement."""
+    idx = jnp.searchsorted(times, render_times, side="right") - 1
+    return jax.tree.map(lambda x: x[jnp.maximum(idx, 0)], states), idx < 0
 
 
 def track(
