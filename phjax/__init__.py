@@ -4,8 +4,25 @@ Pose per camera frame, Kalman prediction, and render-rate motion reconstruction 
 Pythagorean-hodograph (PH) quintics. See the README for an overview.
 """
 
-from . import io
+from . import face_detection, features, head_pose, io, rgbd_io, tuning
+from .face_detection import FaceDetection, FaceDetector, seed_model_cache
+from .head_pose import (
+    HeadPoseConfig,
+    HeadPoseEstimator,
+    HeadPoseResult,
+    HeadPoseStatus,
+    rgbd_relative_pose,
+)
 from .alignment import AlignmentResult, AlignmentStatus, align, ransac_align, transform_points
+from .icp import (
+    IcpResult,
+    IcpStatus,
+    PinholeIntrinsics,
+    backproject,
+    estimate_normals,
+    icp_point_to_plane,
+    icp_projective,
+)
 from .kalman import (
     KalmanConfig,
     KalmanInfo,
@@ -40,6 +57,16 @@ from .quaternion import (
 )
 from .sampling import sample
 from .simulate import SensorModel, simulate_measurements, synthetic_head_motion
+from .synthetic_rgbd import (
+    HeadModel,
+    SyntheticRGBDFrame,
+    SyntheticRGBDSequence,
+    add_depth_noise,
+    render_rgbd,
+    synthetic_rgbd_sequence,
+)
+from .rgbd_io import CameraIntrinsics, RGBDFrame, RGBDSequence, open_rgbd
+from .tuning import TuningResult, load_config, save_config, tracker_loss, tune_tracker
 from .tracker import (
     TrackerConfig,
     TrackerState,
@@ -54,11 +81,46 @@ __version__ = "0.1.0"
 
 __all__ = [
     "io",
+    "face_detection",
+    "features",
+    "head_pose",
+    "rgbd_io",
+    "tuning",
+    "TuningResult",
+    "load_config",
+    "save_config",
+    "tracker_loss",
+    "tune_tracker",
+    "FaceDetection",
+    "FaceDetector",
+    "seed_model_cache",
+    "HeadPoseConfig",
+    "HeadPoseEstimator",
+    "HeadPoseResult",
+    "HeadPoseStatus",
+    "rgbd_relative_pose",
+    "CameraIntrinsics",
+    "RGBDFrame",
+    "RGBDSequence",
+    "open_rgbd",
     "AlignmentResult",
     "AlignmentStatus",
     "align",
     "ransac_align",
     "transform_points",
+    "IcpResult",
+    "IcpStatus",
+    "PinholeIntrinsics",
+    "backproject",
+    "estimate_normals",
+    "icp_point_to_plane",
+    "icp_projective",
+    "HeadModel",
+    "SyntheticRGBDFrame",
+    "SyntheticRGBDSequence",
+    "add_depth_noise",
+    "render_rgbd",
+    "synthetic_rgbd_sequence",
     "KalmanConfig",
     "KalmanInfo",
     "KalmanState",

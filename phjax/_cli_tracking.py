@@ -6,6 +6,8 @@ import time
 
 import numpy as np
 
+from ._cli_tune import add_config_argument
+
 
 def _x64():
     import jax
@@ -22,11 +24,14 @@ def _sensor(args):
 
 
 def _run_evaluation(times, positions, quaternions, args, title: str) -> int:
-    from .evaluation import evaluate_recording, format_table, plot_evaluation
+    from ._cli_tune import config_from_args
+    from .evaluation import default_methods, evaluate_recording, format_table, plot_evaluation
 
+    config = config_from_args(args)
     t0 = time.perf_counter()
     result = evaluate_recording(times, positions, quaternions, sensor=_sensor(args),
-                                render_rate=args.rate, seed=args.seed, progress=not args.no_progress)
+                                render_rate=args.rate, seed=args.seed, progress=not args.no_progress,
+                                methods=default_methods(config))
     elapsed = time.perf_counter() - t0
     print(f"# {title}")
     print(f"sensor: {args.camera_rate:g} Hz, sigma_p {args.sigma_p:g} mm, sigma_r {args.sigma_r:g} deg, "
@@ -40,8 +45,41 @@ def _run_evaluation(times, positions, quaternions, args, title: str) -> int:
     return 0
 
 
+def _demo_rgbd(args) -> int:
+    """End to end on the package's synthetic RGB-D head: front-end, tracker, accuracy."""
+    import argparse
+    import tempfile
+    from pathlib import Path
+
+    from . import face_detection
+    from ._cli_rgbd import cmd_track_rgbd
+    from .datasets import shared_data_dir
+
+    try:
+        face_detection.model_path(face_detection.YUNET_ONNX)
+    except face_detection.ModelNotFoundError:
+        shared = shared_data_dir()
+        src = None if shared is None else shared / "yunet_face_detection"
+        if src is not None and src.is_dir():
+            cached = face_detection.seed_model_cache(src)
+            print(f"model cache seeded from {src}: {', '.join(p.name for p in cached)}")
+        else:
+            print("YuNet model not in the cache: downloading it (sha256-checked)")
+            face_detection.download_model(face_detection.YUNET_ONNX)
+    out = Path(args.plot).with_suffix(".tum") if args.plot else Path(tempfile.gettempdir()) / "phjax_demo_rgbd.tum"
+    ns = argparse.Namespace(source=f"synthetic:{args.rgbd}:{args.seed}", output=str(out), rate=args.rate,
+                            backend="opencv", model_dir=None, download_models=False, features="orb",
+                            icp="projective", detect_interval=1, max_frames=None, raw=None,
+                            gt_reference=True, no_progress=args.no_progress)
+    print(f"# phjax demo --rgbd: {args.rgbd} synthetic RGB-D frames (640x480, 30 Hz) -> head pose -> "
+          f"{args.rate:g} Hz stream")
+    return cmd_track_rgbd(ns)
+
+
 def cmd_demo(args) -> int:
     _x64()
+    if args.rgbd:
+        return _demo_rgbd(args)
     if args.input:
         from .io import read_trajectory
 
@@ -69,9 +107,11 @@ def cmd_smooth(args) -> int:
 
     traj = read_trajectory(args.input, format=args.format)
     render = np.arange(traj.times[0], traj.times[-1], 1.0 / args.rate)
+    from ._cli_tune import config_from_args
+
     fn = reconstruct if args.offline else track
     t0 = time.perf_counter()
-    p, q = fn(traj.times, traj.positions, traj.quaternions, render)
+    p, q = fn(traj.times, traj.positions, traj.quaternions, render, config=config_from_args(args))
     p, q = np.asarray(p, np.float64), np.asarray(q, np.float64)
     ok = np.isfinite(q).all(-1)
     out = Trajectory(render[ok], p[ok], q[ok])
@@ -93,6 +133,7 @@ def _sensor_args(p):
     p.add_argument("--plot", default="phjax_evaluation.png",
                    help="PNG plot path (default phjax_evaluation.png; '' for none)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_config_argument(p)
 
 
 def add_commands(sub) -> None:
@@ -105,6 +146,11 @@ def add_commands(sub) -> None:
         "table and write a PNG plot.")
     p.add_argument("input", nargs="?", help="optional ground-truth trajectory file (TUM, EuRoC, CSV, ...)")
     p.add_argument("--duration", type=float, default=60.0, help="length of the synthetic motion, s")
+    p.add_argument("--rgbd", type=int, default=0, metavar="N",
+                   help="instead: the end-to-end path on N frames of the package's synthetic RGB-D "
+                   "head (YuNet + features + depth + ICP head pose, then the tracker); the YuNet "
+                   "model is taken from the cache, seeded from ../shared/data when present, else "
+                   "downloaded")
     _sensor_args(p)
     p.set_defaults(func=cmd_demo)
 
@@ -125,4 +171,5 @@ def add_commands(sub) -> None:
     p.add_argument("--offline", action="store_true", help="offline reconstruction (uses the future)")
     p.add_argument("--format", default="auto", help="input format (default auto)")
     p.add_argument("--out-format", default="auto", help="output format (auto by extension, tum, csv, euroc)")
+    add_config_argument(p)
     p.set_defaults(func=cmd_smooth)

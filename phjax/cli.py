@@ -2,10 +2,14 @@
 
 Commands:
     demo         the main job: evaluate the causal stream, the offline reconstruction and every
-                 baseline on the bundled synthetic head motion (or a file) and write a plot.
+                 baseline on the bundled synthetic head motion (or a file) and write a plot;
+                 ``--rgbd N``: the end-to-end path on the synthetic RGB-D head.
     evaluate     the same on a ground-truth trajectory file.
     smooth       render a recorded (noisy) pose file at a given rate, causal or offline.
     demo-curve   PH quintic demo: a batch of curves from consecutive poses of a TUM recording.
+    tune         tune the tracker's parameters by gradient on recordings (JSON for --config).
+    track-rgbd   head pose per RGB-D frame (Biwi / TUM / colour+depth folder / synthetic), then
+                 the smooth render-rate stream.
 """
 
 from __future__ import annotations
@@ -111,9 +115,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--x64", action="store_true", help="compute in float64")
     p.set_defaults(func=cmd_demo_curve)
 
-    from . import _cli_tracking
+    from . import _cli_rgbd, _cli_tracking, _cli_tune
 
     _cli_tracking.add_commands(sub)
+    _cli_tune.add_commands(sub)
+    _cli_rgbd.add_commands(sub)
     return parser
 
 

@@ -32,6 +32,19 @@ def test_demo_prints_table_and_writes_plot(tmp_path, capsys):
     assert png.exists() and png.stat().st_size > 10_000
 
 
+def test_demo_rgbd_end_to_end(tmp_path, capsys, monkeypatch):
+    """``phjax demo --rgbd``: model cache seeded from ../shared/data (no network), every
+    synthetic frame gives a pose, the stream file is written."""
+    shared_path("yunet_face_detection", "face_detection_yunet_2023mar.onnx")
+    monkeypatch.setenv("PHJAX_MODEL_DIR", str(tmp_path / "models"))
+    png = tmp_path / "demo.png"
+    assert main(["demo", "--rgbd", "8", "--plot", str(png), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "model cache seeded" in out and "status: OK 8" in out
+    stream = io.read_tum(png.with_suffix(".tum"))
+    assert stream.num_samples > 20 and np.all(np.isfinite(stream.positions))
+
+
 def test_evaluate_on_real_tum_file(tmp_path, capsys):
     gt = shared_path("tum_rgbd_groundtruth", "fr1_xyz-groundtruth.txt")
     traj = io.read_tum(gt)
@@ -68,7 +81,7 @@ def test_bad_input_gives_clear_error(tmp_path, capsys):
 
 
 def test_help_texts():
-    for cmd in [[], ["demo"], ["evaluate"], ["smooth"], ["demo-curve"]]:
+    for cmd in [[], ["demo"], ["evaluate"], ["smooth"], ["demo-curve"], ["tune"], ["track-rgbd"]]:
         res = subprocess.run([sys.executable, "-m", "phjax", *cmd, "--help"], capture_output=True,
                              text=True, cwd=REPO)
         assert res.returncode == 0 and "usage" in res.stdout

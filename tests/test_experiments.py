@@ -1,0 +1,315 @@
+"""The studies in experiments/: bootstrap, difficulty, path curvature, the fixed-shape excerpt
+protocol, and each study end to end in --smoke mode."""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import sys
+
+import numpy as np
+import pytest
+from conftest import REPO, shared_path
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+sys.path.insert(0, str(REPO / "experiments"))
+
+import common as C  # noqa: E402
+
+# ----------------------------------------------------------------------------------------------
+# bootstrap
+# ----------------------------------------------------------------------------------------------
+
+
+def test_bootstrap_matches_scipy_percentile():
+    scipy_stats = pytest.importorskip("scipy.stats")
+    x = np.random.default_rng(1).gamma(2.0, 1.0, size=150)
+    mean, lo, hi = C.bootstrap_ci(x, n_boot=20000, seed=3)
+    ref = scipy_stats.bootstrap((x,), np.mean, n_resamples=20000, method="percentile",
+                                confidence_level=0.95, random_state=4).confidence_interval
+    width = ref.high - ref.low
+    assert mean == pytest.approx(x.mean())
+    assert abs(lo - ref.low) < 0.05 * width and abs(hi - ref.high) < 0.05 * width
+
+
+def test_bootstrap_normal_theory():
+    x = np.random.default_rng(0).normal(3.0, 2.0, size=4000)
+    mean, lo, hi = C.bootstrap_ci(x, n_boot=4000, seed=0)
+    half = 1.959964 * x.std(ddof=1) / np.sqrt(x.size)
+    assert (hi - lo) / 2 == pytest.approx(half, rel=0.08)
+    assert (lo + hi) / 2 == pytest.approx(mean, abs=0.1 * half)
+
+
+def test_cluster_bootstrap_of_duplicated_values_equals_iid_bootstrap_of_groups():
+    # every value repeated 5 times in its own group: the cluster bootstrap must ignore the
+    # duplication (same draws as the iid bootstrap of the 40 distinct values), while treating
+    # the 200 rows as independent would shrink the interval by about sqrt(5)
+    x = np.random.default_rng(2).normal(size=40)
+    rows, groups = np.repeat(x, 5), np.repeat(np.arange(40), 5)
+    assert C.bootstrap_ci(rows, groups=groups, seed=9) == pytest.approx(C.bootstrap_ci(x, seed=9))
+    _, lo, hi = C.bootstrap_ci(rows, seed=9)
+    _, glo, ghi = C.bootstrap_ci(x, seed=9)
+    assert (hi - lo) < 0.6 * (ghi - glo)
+
+
+def test_bootstrap_ratio_of_means():
+    rng = np.random.default_rng(4)
+    b = rng.uniform(1, 2, size=60)
+    groups = np.repeat(np.arange(20), 3)
+    assert C.bootstrap_ratio_ci(2 * b, b, groups=groups) == pytest.approx((2.0, 2.0, 2.0))
+    a = b + rng.normal(0, 0.3, size=60)
+    a[5] = np.nan  # dropped pairwise
+    r, lo, hi = C.bootstrap_ratio_ci(a, b, n_boot=4000, seed=1)
+    ok = np.isfinite(a)
+    assert r == pytest.approx(a[ok].mean() / b[ok].mean())
+    assert lo < r < hi
+    # the delta-method standard error of a ratio of means, as an independent reference
+    d = a[ok] - r * b[ok]
+    se = d.std(ddof=1) / np.sqrt(ok.sum()) / b[ok].mean()
+    assert (hi - lo) / 2 == pytest.approx(1.96 * se, rel=0.15)
+
+
+@settings(max_examples=30)
+@given(st.lists(st.floats(-1e3, 1e3), min_size=1, max_size=40), st.integers(0, 2**31 - 1))
+def test_bootstrap_interval_properties(values, seed):
+    x = np.asarray(values + [np.nan])
+    a = C.bootstrap_ci(x, n_boot=300, seed=seed)
+    assert a == C.bootstrap_ci(x, n_boot=300, seed=seed)  # deterministic by seed
+    mean, lo, hi = a
+    finite = np.asarray(values)
+    assert mean == pytest.approx(finite.mean(), abs=1e-9)
+    assert finite.min() - 1e-9 <= lo <= hi <= finite.max() + 1e-9
+    assert np.isnan(C.bootstrap_ci([np.nan])[0])
+
+
+# ----------------------------------------------------------------------------------------------
+# difficulty
+# ----------------------------------------------------------------------------------------------
+
+
+def _circle_motion(omega, radius, duration=3.0, rate=120.0, wobble=0.0):
+    """Rotation about z at angular speed ``omega (1 + wobble sin t)``; position on a circle of
+    the given radius."""
+    t = np.arange(0, duration, 1 / rate)
+    ang = omega * (t + wobble * (1 - np.cos(t)))
+    q = np.stack([np.cos(ang / 2), 0 * t, 0 * t, np.sin(ang / 2)], -1)
+    p = radius * np.stack([np.cos(ang), np.sin(ang), 0 * t], -1)
+    return t, p, q
+
+
+def test_difficulty_features_exact_on_uniform_circular_motion():
+    omega, radius = 2.0, 0.3
+    f = C.difficulty_features(*_circle_motion(omega, radius))
+    span = round(0.04 * 120) / 120  # the velocity span in samples of the 120 Hz stream
+    chord = np.sinc(omega * span / (2 * np.pi))  # chord / arc of the circle over that span
+    assert f["angular_speed"] == pytest.approx(omega, rel=1e-9)
+    assert f["angular_accel"] == pytest.approx(0.0, abs=1e-8)
+    assert f["linear_speed"] == pytest.approx(omega * radius * chord, rel=1e-9)
+    assert f["linear_accel"] == pytest.approx(omega**2 * radius, rel=2e-3)
+
+
+def test_difficulty_ordering_and_normalisation():
+    scales = np.array([3.0, 0.5, 2.0, 1.0, 4.0])
+    feats = np.array([list(C.difficulty_features(*_circle_motion(s, 0.2, wobble=0.5)).values())
+                      for s in scales])
+    score = C.difficulty_scores(feats)
+    ranks = C.difficulty_ranks(score)
+    assert np.array_equal(ranks, np.argsort(np.argsort(scales)))  # faster = more difficult
+    # dimensionless: a feature's unit does not matter; unavailable features are skipped
+    rescaled = feats * np.array([1.0, 1e3, 1e-2, 7.0])
+    assert np.allclose(C.difficulty_scores(rescaled), score)
+    no_pos = feats.copy()
+    no_pos[:, 2:] = np.nan
+    assert np.array_equal(C.difficulty_ranks(C.difficulty_scores(no_pos)), ranks)
+    assert C.difficulty_ranks(np.array([2.0, np.nan, 1.0])).tolist() == [1, 2, 0]
+
+
+# ----------------------------------------------------------------------------------------------
+# path curvature / torsion
+# ----------------------------------------------------------------------------------------------
+
+
+def test_path_curvature_torsion_of_a_helix_and_its_hold():
+    a, b = 0.3, 0.1
+    c = np.hypot(a, b)
+    s = np.linspace(0, 4, 20001)
+    x = np.stack([a * np.cos(s / c), a * np.sin(s / c), b * s / c], -1)
+    kappa, tau = C.path_curvature_torsion(x)
+    assert kappa == pytest.approx(a / c**2, rel=1e-3) and tau == pytest.approx(b / c**2, rel=1e-3)
+    # a zero-order hold repeats samples: the staircase is the polyline through the held poses
+    coarse = x[::200]
+    held = np.repeat(coarse, 4, axis=0)
+    assert C.path_curvature_torsion(held) == pytest.approx(C.path_curvature_torsion(coarse))
+    # NaN rows are skipped, a straight line has no curvature and no torsion
+    held[7] = np.nan
+    assert np.isfinite(C.path_curvature_torsion(held)).all()
+    line = np.linspace(0, 1, 50)[:, None] * np.array([1.0, 2.0, 3.0])
+    k, t = C.path_curvature_torsion(line)
+    assert k == pytest.approx(0, abs=1e-9) and np.isnan(t)
+    # a planar zigzag: turning pi/2 per corner, no torsion
+    zig = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [2, 1, 0], [2, 2, 0.0]])
+    k, t = C.path_curvature_torsion(zig)
+    assert k == pytest.approx(3 * np.pi / 2 / 4) and t == pytest.approx(0, abs=1e-12)
+
+
+# ----------------------------------------------------------------------------------------------
+# windows and the padded excerpt protocol
+# ----------------------------------------------------------------------------------------------
+
+
+def _fake_recordings():
+    from phjax import synthetic_head_motion
+
+    recs = {}
+    for d, dur in (("head", 30.0), ("object", 12.0), ("camera", 20.0)):
+        t, p, q = synthetic_head_motion(duration=dur, rate=100.0, seed=len(d))
+        if d == "object":  # a ground-truth gap of 2 s
+            keep = (t < 5) | (t > 7)
+            t, p, q = t[keep], p[keep], q[keep]
+        recs[d] = [C.Recording(f"{d}-{i}", d, f"src{i}", t, p, q, "measured") for i in range(2)]
+    return recs
+
+
+def test_draw_windows_deterministic_and_inside_the_recordings():
+    recs = _fake_recordings()
+    proto = C.Protocol()
+    w1 = C.draw_windows(recs, 30, seed=5, protocol=proto)
+    assert w1 == C.draw_windows(recs, 30, seed=5, protocol=proto)
+    assert w1 != C.draw_windows(recs, 30, seed=6, protocol=proto)
+    assert len(w1) == 90 and len({w.uid for w in w1}) == 90
+    for w in w1:
+        rec = recs[w.dataset][w.recording]
+        assert proto.min_len <= w.duration <= proto.max_len
+        assert w.start >= proto.warmup and w.start + w.duration <= rec.times[-1] + 1e-9
+        if w.dataset == "object":  # gap of 2 s inside [5, 7]: never more than 10 % of a window
+            overlap = max(0.0, min(w.start + w.duration, 7) - max(w.start, 5))
+            assert overlap <= 0.1 * w.duration + 0.02
+    # stratified: each source of a benchmark gets half the windows
+    assert sum(w.source == "src0" for w in w1 if w.dataset == "head") == 15
+
+
+def test_padded_excerpt_gives_the_unpadded_result():
+    from phjax import SensorModel, track
+    from phjax.baselines import cubic_spline
+
+    recs = _fake_recordings()
+    proto = C.Protocol()
+    shapes = C.Shapes.for_protocol(proto)
+    w = C.draw_windows(recs, 3, seed=1, protocol=proto)[0]
+    ex = C.make_excerpt(recs[w.dataset][w.recording], w, sensor=SensorModel(), render_rate=120.0,
+                        seed=0, protocol=proto, shapes=shapes)
+    assert ex.times.shape == (shapes.frames,) and ex.render.shape == (shapes.render,)
+    assert np.all(np.diff(ex.times) > 0)
+    n = ex.n_render
+    assert n == pytest.approx(w.duration * 120, abs=1.01)
+    assert np.all(ex.render[:n] < ex.window_end) and ex.render[n] >= ex.window_end
+    real = np.isfinite(ex.quaternions).all(-1)
+    last = np.flatnonzero(real).max() + 1
+    assert np.all(~real[last:]) and last < shapes.frames  # padding rows are dropped frames
+    assert ex.times[last - 1] <= ex.window_end + proto.tail + 1e-9
+    # offline: the NaN padding rows are exactly like absent rows
+    p1, q1 = (np.asarray(a) for a in cubic_spline(ex.times[:last], ex.positions[:last],
+                                                  ex.quaternions[:last], ex.render[:n]))
+    p2, q2 = (np.asarray(a)[:n] for a in cubic_spline(ex.times, ex.positions, ex.quaternions,
+                                                      ex.render))
+    assert np.max(np.abs(p1 - p2)) < 1e-12 and np.max(np.abs(q1 - q2)) < 1e-12
+    # causal: the rendered window does not depend on the padding rows at all (here replaced by
+    # arbitrary poses), so it equals the unpadded stream; same shapes, no recompilation
+    other_p, other_q = ex.positions.copy(), ex.quaternions.copy()
+    other_p[last:] = 5.0
+    other_q[last:] = [0.0, 1.0, 0.0, 0.0]
+    a = [np.asarray(x)[:n] for x in track(ex.times, ex.positions, ex.quaternions, ex.render)]
+    b = [np.asarray(x)[:n] for x in track(ex.times, other_p, other_q, ex.render)]
+    assert ex.render[n - 1] < ex.times[last]
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    # the ground truth at the render times is the recording interpolated there
+    rec = recs[w.dataset][w.recording]
+    t_abs = ex.render[:n] + (w.start - ex.window_start)
+    assert np.allclose(ex.gt_positions[:n, 0], np.interp(t_abs, rec.times, rec.positions[:, 0]),
+                       atol=1e-12)
+
+
+# ----------------------------------------------------------------------------------------------
+# the studies end to end (--smoke)
+# ----------------------------------------------------------------------------------------------
+
+SMOKE_METHODS = ["phjax (causal)", "kalman-cv extrapolation", "raw hold", "cubic spline (scipy)"]
+
+
+def _rows(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_fig1_smoke(tmp_path):
+    shared_path("tum_rgbd_groundtruth")
+    import fig1
+
+    out = tmp_path / "fig1"
+    assert fig1.main(["--smoke", "--out", str(out), "--no-progress", "--n-boot", "500",
+                      "--methods", ",".join(SMOKE_METHODS)]) == 0
+    rows = _rows(out / "per_window.csv")
+    assert {r["method"] for r in rows} == set(SMOKE_METHODS)
+    assert len(rows) == 12 * len(SMOKE_METHODS)
+    for key in C.FIG1_METRICS:
+        assert key in rows[0]
+    for r in rows:
+        assert float(r["rotation_rmse_deg"]) > 0
+        if r["dataset"] != "head" or r["position_source"] != "none":
+            assert float(r["position_rmse"]) > 0 and float(r["curvature_path"]) >= 0
+    for d in C.DATASETS:  # ranks are a permutation, ordered by the difficulty score
+        win = {r["window"]: (int(r["rank"]), float(r["difficulty"])) for r in rows
+               if r["dataset"] == d}
+        ranks = sorted(win.values())
+        assert [rk for rk, _ in ranks] == list(range(4))
+        assert all(a[1] <= b[1] for a, b in itertools.pairwise(ranks))
+    stats = _rows(out / "summary_stats.csv")
+    assert len(stats) >= 3 * len(SMOKE_METHODS) * len(C.ALL_METRICS)
+    for s in stats:
+        m, lo, hi = float(s["mean"]), float(s["ci_low"]), float(s["ci_high"])
+        if np.isfinite(m):
+            assert lo <= m + 1e-12 and m <= hi + 1e-12
+    diffs = _rows(out / "paired_differences.csv")
+    assert {d["baseline"] for d in diffs} == set(SMOKE_METHODS[1:])
+    for name in ("fig1.png", "fig1_advantage.png"):
+        assert (out / name).stat().st_size > 20_000
+    text = (out / "summary.md").read_text()
+    assert "Paired differences" in text and "| camera | phjax (causal) |" in text
+
+
+def test_sensitivity_smoke(tmp_path):
+    shared_path("tum_rgbd_groundtruth")
+    import sensitivity
+
+    out = tmp_path / "sens"
+    assert sensitivity.main(["--smoke", "--out", str(out), "--no-progress", "--n-boot", "300"]) == 0
+    rows = _rows(out / "per_window.csv")
+    assert len(rows) == 3 * len(sensitivity.conditions()) * 2
+    stats = _rows(out / "summary_stats.csv")
+    n_levels = sum(len(f.levels) for f in sensitivity.FACTORS)
+    assert len(stats) == n_levels * 3 * len(sensitivity.METRICS)
+    for s in stats:
+        g, lo, hi = float(s["geo_mean_ratio"]), float(s["ci_low"]), float(s["ci_high"])
+        assert 0 < lo <= g * (1 + 1e-12) and g <= hi * (1 + 1e-12)
+    # more camera noise raises the error of both methods (same windows, same noise draws)
+    by = {}
+    for r in rows:
+        if r["method"] == "kalman-cv extrapolation" and float(r["rate"]) == 30 and \
+                float(r["dropout"]) == 0.05 and float(r["jitter"]) == 0 and float(r["render"]) == 120:
+            by.setdefault(float(r["sigma_p"]), []).append(float(r["rotation_rmse_deg"]))
+    assert np.mean(by[0.002]) < np.mean(by[0.005]) < np.mean(by[0.02])
+    assert (out / "sensitivity.png").stat().st_size > 20_000
+
+
+def test_processing_time_smoke(tmp_path):
+    import processing_time
+
+    out = tmp_path / "pt"
+    assert processing_time.main(["--smoke", "--out", str(out), "--no-progress"]) == 0
+    rows = _rows(out / "per_n.csv")
+    assert len(rows) == 4
+    for r in rows:
+        assert float(r["best_s"]) > 0 and float(r["best_s"]) <= float(r["median_s"])
+    assert (out / "processing_time.png").stat().st_size > 20_000
+    assert "log-log exponent" in (out / "summary.md").read_text()
