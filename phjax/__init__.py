@@ -56,6 +56,7 @@ from .quaternion import (
     quat_to_rotvec,
 )
 from .sampling import sample
+from .shape import ShapeSolution, ShapeStatus, grid_search_shape, optimize_shape
 from .simulate import SensorModel, simulate_measurements, synthetic_head_motion
 from .synthetic_rgbd import (
     HeadModel,
@@ -131,6 +132,10 @@ __all__ = [
     "kalman_update",
     "predict_pose",
     "rts_smooth",
+    "ShapeSolution",
+    "ShapeStatus",
+    "grid_search_shape",
+    "optimize_shape",
     "QuaternionHermite",
     "quaternion_hermite",
     "SensorModel",
