@@ -224,7 +224,7 @@ def section_throughput(all_data):
     print(f"\n## Throughput ({n:.0e} consecutive-pose TUM RGB-D segments per call)\n")
     print(table(["dtype", "problem", "segments", "solves/s", "best s", "median s", "compile s",
                  "median steps", "MAX_STEPS", "hermite_quintic (CC) segments/s"], rows))
-    print("\nDefaults: 4 starts (closed form + 3 seed-grid minima of a 12 x 12 grid), "
+    print("\nDefaults: 8 starts (closed form + 7 seed-grid minima of a 12 x 12 grid), "
           "max_steps = 16 BFGS steps per start (per augmented-Lagrangian iteration with a bound, "
           "4 iterations). 'compile s' is the first call (trace + compile + run). MAX_STEPS: "
           "share of segments whose best start stopped at max_steps (its value is still the best "
