@@ -55,6 +55,7 @@ from .quaternion import (
     quat_to_matrix,
     quat_to_rotvec,
 )
+from .ph_spline import SplineSolution, SplineStatus, ph_spline
 from .sampling import sample
 from .shape import ShapeSolution, ShapeStatus, grid_search_shape, optimize_shape
 from .simulate import SensorModel, simulate_measurements, synthetic_head_motion
@@ -132,6 +133,9 @@ __all__ = [
     "kalman_update",
     "predict_pose",
     "rts_smooth",
+    "SplineSolution",
+    "SplineStatus",
+    "ph_spline",
     "ShapeSolution",
     "ShapeStatus",
     "grid_search_shape",
