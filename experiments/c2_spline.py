@@ -17,7 +17,8 @@ at 120 Hz:
   issue).
 
 Reported per sequence and as the mean ratio to the C1 chain: position RMSE against the
-ground truth and RMS jerk of the rendered positions (``phjax.metrics``), Newton steps and the
+ground truth and RMS jerk of the rendered positions (``phjax.metrics``), feasibility-phase
+Levenberg-Marquardt steps and the
 largest equation residual of the spline solves, and how many window solves ended
 ``NOT_FAIREST`` (a valid C2 interpolant whose fairness did not reach stationarity).
 """
@@ -121,7 +122,7 @@ def main(argv=None):
              f"{len(rows)} sequences x {seconds:g} s, default sensor, 120 Hz render, windows of "
              f"{args.window} intervals; {elapsed:.0f} s wall.", "",
              "| sequence | pos RMSE C1 [mm] | C2 [mm] | scipy spline [mm] | RMS jerk C1 [m/s^3] | "
-             "C2 | scipy spline | Newton steps (max) | residual (max) |",
+             "C2 | scipy spline | LM steps (max) | residual (max) |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['name']} | {1e3 * r['rmse_c1']:.3f} | {1e3 * r['rmse_c2']:.3f} | "

@@ -191,14 +191,18 @@ def _data_frame(p0, p1, d0, d1) -> _Frame:
 
 def _make_frame(u, p0, p1, d0, d1) -> _Frame:
     """Frame for axis ``u``. The second-branch direction ``m`` comes from the data (the part of
-    ``(p1 - p0) + d1`` perpendicular to ``u``, smooth except where that part vanishes) so that
-    fixed angles stay rotation-covariant; only when it vanishes is a fixed rule used."""
+    ``(p1 - p0) + d1`` perpendicular to ``u``, smooth except where that part vanishes; then that
+    of ``p1 - p0``, then of ``d1``) so that fixed angles stay rotation-covariant; only when all
+    data are parallel to ``u`` is a fixed rule used."""
     ex = jnp.broadcast_to(jnp.asarray([1.0, 0.0, 0.0], u.dtype), u.shape)
-    v = (p1 - p0) + d1
-    vp = v - jnp.sum(v * u, axis=-1, keepdims=True) * u
     scale = safe_norm(p1 - p0, keepdims=True) + safe_norm(d0, keepdims=True) + safe_norm(d1, keepdims=True)
-    ok = safe_norm(vp, keepdims=True) > 1e-9 * scale
-    m = jnp.where(ok, safe_normalize(vp), unit_perpendicular(u))
+    m = unit_perpendicular(u)
+    # first data vector (in this order) with a part perpendicular to u: (p1 - p0) + d1, then
+    # p1 - p0, then d1 (the sum cancels when d1 = -(p1 - p0), found by hypothesis)
+    for v in (d1, p1 - p0, (p1 - p0) + d1):
+        vp = v - jnp.sum(v * u, axis=-1, keepdims=True) * u
+        ok = safe_norm(vp, keepdims=True) > 1e-9 * scale
+        m = jnp.where(ok, safe_normalize(vp), m)
     return _Frame(u=u, r=_unit_fibre(u, ex), m=m)
 
 
