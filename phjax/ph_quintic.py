@@ -536,6 +536,9 @@ def near_optimal_angles(
     ``|A1 - (A0 + A2)/2|^2`` (zero exactly when the quintic is a degree-elevated PH cubic), with
     ``phi1 = 0``. The rule is geometric: the resulting curve does not depend on ``axis``.
     Helix test of the note: deviation 2.8e-4 at h = 0.8 and 6.5e-9 at h = 0.05 (order 4).
+    Known limit: equal end derivatives ``d0 = d1 = d`` with ``(3 (p1 - p0) - 2 d) . d < 0``
+    leave ``alpha`` undetermined; the rule then picks one member by a fixed convention, which is
+    not rotation-covariant (fixed angles are).
 
     Arguments:
         p0, p1: end points; d0, d1: end derivatives ``r'(0)``, ``r'(1)``.
