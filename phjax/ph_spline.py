@@ -114,18 +114,21 @@ def _fairness(Z):
     return jnp.sum((Z[:-2] - 2 * Z[1:-1] + Z[2:]) ** 2)
 
 
+def _times_i(a):
+    """The Hamilton product ``a i`` (wxyz): the direction of the common phase at ``a``."""
+    return jnp.stack([-a[..., 1], a[..., 0], a[..., 3], -a[..., 2]], -1)
+
+
 def _phase_to(target, a):
     """The phase ``theta`` with ``a exp(theta i)`` closest to ``target`` (as cos, sin)."""
-    ai = jnp.stack([-a[..., 1], a[..., 0], a[..., 3], -a[..., 2]], -1)  # a * i (wxyz)
-    s, c = jnp.sum(target * ai, -1), jnp.sum(target * a, -1)
+    s, c = jnp.sum(target * _times_i(a), -1), jnp.sum(target * a, -1)
     n = jnp.hypot(s, c)
     ok = n > 0
     return jnp.where(ok, c / jnp.where(ok, n, 1), 1.0), jnp.where(ok, s / jnp.where(ok, n, 1), 0.0)
 
 
 def _rotate_phase(a, cs, sn):
-    ai = jnp.stack([-a[..., 1], a[..., 0], a[..., 3], -a[..., 2]], -1)
-    return cs[..., None] * a + sn[..., None] * ai
+    return cs[..., None] * a + sn[..., None] * _times_i(a)
 
 
 def _initial(p, d_start, d_end, clamp_start, clamp_end):
@@ -162,8 +165,7 @@ def _constraints(Z, dp, ds, de, Z0, clamp_start, clamp_end):
         parts.append(_sandwich_i(A0[0], A0[0]) - ds)
     if clamp_end:
         parts.append(_sandwich_i(A2[-1], A2[-1]) - de)
-    zi0 = jnp.stack([-Z0[:, 1], Z0[:, 0], Z0[:, 3], -Z0[:, 2]], -1)  # Z0 * i (wxyz)
-    parts.append(jnp.sum((Z - Z0) * zi0)[None])
+    parts.append(jnp.sum((Z - Z0) * _times_i(Z0))[None])
     return jnp.concatenate(parts)
 
 
