@@ -1,6 +1,6 @@
 """Tune every method's parameters for the lowest RMSE on the development set; print the tables.
 
-    python experiments/tune_baselines.py [--seconds 30] [--out results/tuning]
+    python experiments/tune_baselines.py [--seconds 30] [--out results/tuning] [--horizon-only]
 
 Protocol: each development sequence (``experiments/devset.py``, first ``--seconds`` of each) is
 sampled by the default sensor model (30 Hz, 5 mm, 1 deg, 5 % dropouts, seed 0) and rendered at
@@ -71,6 +71,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=30.0, help="length of each sequence used")
     ap.add_argument("--out", default="results/tuning", help="output folder")
+    ap.add_argument("--horizon-only", action="store_true",
+                    help="skip the baseline grids; trade-off curve of the phjax horizon with the "
+                         "default (already tuned) KalmanConfig")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -78,6 +81,10 @@ def main(argv=None):
     ref = scores(data, baselines.hold)
     report = ["# Tuning on the development set", "",
               f"{len(data)} sequences, {args.seconds:g} s each, default sensor model, 120 Hz render.", ""]
+
+    if args.horizon_only:
+        d = KalmanConfig()
+        return horizon_tradeoff(data, d.pos_process_noise, d.rot_process_noise, report, out)
 
     # Kalman CV: position and rotation noise densities (independent parts)
     qs_p = [0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0]
@@ -110,14 +117,20 @@ def main(argv=None):
     report += [f"| {k[0]:g} | {k[1]:g} | {v[0]:.4f} | {v[1]:.4f} |" for k, v in oe.items()]
     report += ["", f"chosen: position {best_oe_p}, rotation {best_oe_r}", ""]
 
-    # phjax: the tuned filter + horizon trade-off
+    extra = dict(one_euro_position=dict(min_cutoff=best_oe_p[0], beta=best_oe_p[1]),
+                 one_euro_rotation=dict(min_cutoff=best_oe_r[0], beta=best_oe_r[1]))
+    return horizon_tradeoff(data, best_qp, best_qr, report, out, extra)
+
+
+def horizon_tradeoff(data, best_qp, best_qr, report, out, extra=None):
+    """phjax with the tuned filter: RMSE and jerk ratios to Kalman CV for a range of horizons."""
     kcfg = KalmanConfig(pos_process_noise=best_qp, rot_process_noise=best_qr)
     kf_rows = scores(data, lambda t, p, q, r: baselines.kalman_extrapolation(t, p, q, r, config=kcfg))
     report += ["## phjax horizon trade-off (tuned filter)", "",
                "ratios to the tuned Kalman CV extrapolation, mean over sequences", "",
                "| horizon [s] | pos RMSE | rot RMSE | pos jerk | rot jerk |", "|---|---|---|---|---|"]
     trade = {}
-    for h in [0.015, 0.02, 0.025, 0.03, 0.033, 0.05, 0.067, 0.1]:
+    for h in [0.015, 0.02, 0.025, 0.028, 0.03, 0.035, 0.05, 0.067, 0.1]:
         cfg = TrackerConfig(kalman=kcfg, horizon=h)
         rows = scores(data, lambda t, p, q, r, cfg=cfg: track(t, p, q, r, config=cfg))
         trade[h] = [rel(rows, kf_rows, k) for k in ("pos", "rot", "jp", "jr")]
@@ -127,9 +140,7 @@ def main(argv=None):
     text = "\n".join(report)
     (out / "tuning.md").write_text(text)
     (out / "tuned.json").write_text(json.dumps(dict(
-        kalman=dict(pos_process_noise=best_qp, rot_process_noise=best_qr),
-        one_euro_position=dict(min_cutoff=best_oe_p[0], beta=best_oe_p[1]),
-        one_euro_rotation=dict(min_cutoff=best_oe_r[0], beta=best_oe_r[1]),
+        kalman=dict(pos_process_noise=best_qp, rot_process_noise=best_qr), **(extra or {}),
         horizon_tradeoff={str(k): v for k, v in trade.items()},
     ), indent=2))
     print(text)

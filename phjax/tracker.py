@@ -7,9 +7,16 @@ smooth pose at any render time:
   velocity at each camera frame;
 * at each frame ``t_k`` a new **segment** starts at the pose and velocity *currently rendered*
   (so the stream is C1 across camera frames: no jump in position, orientation or their
-  velocities) and ends at the filter's prediction for ``t_k + horizon``: a PH quintic
+  velocities) and reaches the filter's prediction at ``t_k + horizon``. In between, the
+  correction ``c`` (rendered minus predicted pose, and its rate) decays like a critically damped
+  second-order system with time constant ``T = horizon / 5``,
+  ``c(t) = (c0 (1 + s) + c0' (t - t_k)) exp(-s)``, ``s = (t - t_k) / T``: most of the
+  correction is applied early, which halves the extra error of a symmetric (smoothstep-like)
+  blend at the same jerk. The segment is two C1-joined pieces, each a PH quintic
   (:func:`phjax.hermite_quintic`, near-optimal free angles) for position and a C1 quaternion
-  curve (:func:`phjax.quaternion_hermite`) for orientation;
+  curve (:func:`phjax.quaternion_hermite`) for orientation: from the rendered state to the
+  damped correction's state at ``t_k + 0.4 horizon`` (two time constants), then to the
+  prediction at ``t_k + horizon`` with the predicted velocities;
 * render samples inside the segment evaluate the two curves; past its end (dropped frames) the
   pose coasts with the end velocities for ``coast_time`` seconds, then the velocities decay with
   time constant ``stop_time`` (C1) so the pose comes to rest: it never runs away.
@@ -45,7 +52,7 @@ from .kalman import (
 )
 from .orientation import QuaternionHermite, quaternion_hermite
 from .ph_quintic import PHQuintic, hermite_quintic
-from .quaternion import quat_from_rotvec, quat_mul, quat_normalize
+from .quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
 
 __all__ = [
     "TrackerConfig",
@@ -63,20 +70,28 @@ class TrackerConfig(eqx.Module):
 
     Fields:
         kalman: the filter's noise model (:class:`phjax.KalmanConfig`).
-        horizon: duration of each render segment, s: the stream reaches the filter's prediction
-            ``horizon`` seconds after each camera frame. The main smoothness knob: longer is
-            smoother (lower jerk), shorter follows the filter more closely. Default 0.025 s
-            (tuned on the development set at 30 Hz: RMSE 1.06x and RMS jerk 0.26-0.34x of the
-            filter's own constant-velocity extrapolation; see ``experiments/tune_baselines.py``).
+        horizon: settling time of each correction, s: the stream reaches the filter's
+            prediction ``horizon`` seconds after each camera frame. The main smoothness knob:
+            longer is smoother (lower jerk), shorter follows the filter more closely. Default
+            0.03 s (development set, 30 Hz camera, 120 Hz render: RMSE 1.04x and RMS jerk
+            0.27x of the filter's own constant-velocity extrapolation for position; see
+            ``experiments/tune_baselines.py``).
         coast_time: after a segment ends without a new frame, keep moving with the end
             velocities for this long, s (default 0.1).
         stop_time: then let the velocities decay with this time constant, s (default 0.05).
     """
 
     kalman: KalmanConfig = eqx.field(default_factory=KalmanConfig)
-    horizon: float = 0.025
+    horizon: float = 0.028
     coast_time: float = 0.1
     stop_time: float = 0.05
+
+
+#: The correction ``c(t)`` = rendered minus predicted pose decays like a critically damped
+#: second-order system, ``c(t) = (c0 (1 + s) + c0' t) exp(-s)`` with ``s = t / T``; the time
+#: constant is ``T = _SETTLE * horizon`` and the two pieces join at ``_KNOT * horizon``.
+_SETTLE = 0.2
+_KNOT = 0.4
 
 
 class TrackerState(eqx.Module):
@@ -84,42 +99,48 @@ class TrackerState(eqx.Module):
 
     Fields:
         filter: the Kalman filter state.
-        t0: start time of the current render segment, s.
-        duration: its duration, s.
-        curve: position segment on the parameter ``(t - t0) / duration``.
-        rotation: orientation segment on the same parameter.
+        t0: time of the last segment start (the last camera frame used), s.
+        duration: durations of the two pieces of the segment, s, ``(2,)``.
+        curve: the two position pieces (a :class:`PHQuintic` batch of 2), each on its own
+            parameter ``(t - start) / duration``.
+        rotation: the two orientation pieces (a :class:`QuaternionHermite` batch of 2).
         started: whether a valid measurement has been seen (before that samples are NaN).
-        render: everything a render sample needs, packed in one vector (segment start and
-            duration, ``started``, the power basis of ``curve``, the rotation curve, and the
-            end pose and velocities and the coasting parameters of the config of the last
-            update), so that :func:`tracker_sample` passes a single array to its kernel.
+        render: everything a render sample needs, packed in one vector (per piece: start,
+            duration, the power basis of the position piece and the rotation piece; then
+            ``started``, the end pose and velocities and the coasting parameters of the config
+            of the last update), so that :func:`tracker_sample` passes a single array to its
+            kernel.
     """
 
     filter: KalmanState
     t0: Float[Array, ""]
-    duration: Float[Array, ""]
+    duration: Float[Array, "2"]
     curve: PHQuintic
     rotation: QuaternionHermite
     started: Bool[Array, ""]
-    render: Float[Array, "49"]
+    render: Float[Array, "82"]
 
 
-# layout of TrackerState.render
-_R = dict(t0=(0, 1), dur=(1, 2), started=(2, 3), coef=(3, 21), q0=(21, 25), w1=(25, 28),
-          w2=(28, 31), w3=(31, 34), p_end=(34, 37), v_end=(37, 40), q_end=(40, 44), w_end=(44, 47),
-          coast=(47, 48), stop=(48, 49))
+# layout of TrackerState.render: two piece blocks of _PIECE values, then the common part
+_PIECE = 33  # start, duration, power basis (18), q0 (4), w1, w2, w3 (9)
+_R = dict(started=(66, 67), p_end=(67, 70), v_end=(70, 73), q_end=(73, 77), w_end=(77, 80),
+          coast=(80, 81))
+_RENDER_SIZE = 82  # + stop at 81
 
 
 def _make_state(config, kf, t0, duration, curve, rotation, started) -> TrackerState:
-    """A :class:`TrackerState` with the packed render vector of its segment."""
+    """A :class:`TrackerState` with the packed render vector of its two pieces."""
     dtype = t0.dtype
-    coef = curve._power(0)
+    coef = curve._power(0)  # (2, 6, 3)
     one = jnp.ones((), dtype)
-    p_end = jnp.sum(coef, axis=-2)
-    v_end = jnp.sum(coef * jnp.arange(6, dtype=dtype)[:, None], axis=-2) / duration
-    parts = [t0[None], duration[None], started.astype(dtype)[None], coef.reshape(18),
-             rotation.q0, rotation.w1, rotation.w2, rotation.w3, p_end, v_end,
-             rotation.rotation(one), rotation.angular_velocity(one),
+    p_end = jnp.sum(coef[1], axis=-2)
+    v_end = jnp.sum(coef[1] * jnp.arange(6, dtype=dtype)[:, None], axis=-2) / duration[1]
+    starts = jnp.stack([t0, t0 + duration[0]])
+    pieces = jnp.concatenate([starts[:, None], duration[:, None], coef.reshape(2, 18),
+                              rotation.q0, rotation.w1, rotation.w2, rotation.w3], axis=-1)
+    last = jax.tree.map(lambda x: x[1], rotation)
+    parts = [pieces.reshape(2 * _PIECE), started.astype(dtype)[None], p_end, v_end,
+             last.rotation(one), last.angular_velocity(one),
              jnp.asarray(config.coast_time, dtype)[None], jnp.asarray(config.stop_time, dtype)[None]]
     render = jnp.concatenate([jnp.asarray(x, dtype) for x in parts])
     return TrackerState(kf, t0, duration, curve, rotation, started, render)
@@ -146,11 +167,11 @@ def tracker_init(config: TrackerConfig | None = None, t: float = 0.0, dtype=None
     config = TrackerConfig() if config is None else config
     dtype = jnp.zeros((), dtype=dtype if dtype is not None else float).dtype
     kf = kalman_uninitialized(config.kalman, jnp.asarray(t, dtype), dtype)
-    z3 = jnp.zeros(3, dtype)
-    q = jnp.asarray([1.0, 0, 0, 0], dtype)
-    one = jnp.ones((), dtype)
-    curve, rot = _segment(z3, z3, q, z3, z3, z3, q, z3, one)
-    return _make_state(config, kf, jnp.asarray(t, dtype), one, curve, rot, jnp.asarray(False))
+    z3 = jnp.zeros((2, 3), dtype)
+    q = jnp.broadcast_to(jnp.asarray([1.0, 0, 0, 0], dtype), (2, 4))
+    dur = jnp.full((2,), 0.5, dtype)
+    curve, rot = _segment(z3, z3, q, z3, z3, z3, q, z3, dur)
+    return _make_state(config, kf, jnp.asarray(t, dtype), dur, curve, rot, jnp.asarray(False))
 
 
 def _evaluate(config: TrackerConfig, state: TrackerState, tau, velocities: bool = True):
@@ -161,43 +182,67 @@ def _evaluate(config: TrackerConfig, state: TrackerState, tau, velocities: bool 
 
 def _eval_render(render, tau, velocities: bool = True):
     r = {k: render[a:b] for k, (a, b) in _R.items()}
-    coast_time, stop_time = r["coast"][0], r["stop"][0]
+    coast_time, stop_time = r["coast"][0], render[_RENDER_SIZE - 1]
     dtype = render.dtype
     tau = jnp.asarray(tau, dtype)
-    t0, dur, started = r["t0"][0], r["dur"][0], r["started"][0] > 0
-    c = r["coef"].reshape(6, 3)
-    rot = QuaternionHermite(r["q0"], r["w1"], r["w2"], r["w3"], dur)
+    started = r["started"][0] > 0
+    # the piece that covers tau (the second from its start on)
+    first, second = render[:_PIECE], render[_PIECE:2 * _PIECE]
+    piece = jnp.where((tau >= second[0])[..., None], second, first)
+    t0, dur, c = piece[..., 0], piece[..., 1], piece[..., 2:20].reshape(piece.shape[:-1] + (6, 3))
+    rot = QuaternionHermite(piece[..., 20:24], piece[..., 24:27], piece[..., 27:30],
+                            piece[..., 30:33], dur)
     s = jnp.clip((tau - t0) / dur, 0, 1)[..., None]
-    p_in = c[5]
+    p_in = c[..., 5, :]
     for j in range(4, -1, -1):
-        p_in = p_in * s + c[j]
-    q_in = rot.rotation(s[..., 0])
+        p_in = p_in * s + c[..., j, :]
+    q_in = _rotation_at(rot, s[..., 0])
     # beyond the segment end: coast, then come to rest smoothly
-    delta = jnp.maximum(tau - (t0 + dur), 0)
+    delta = jnp.maximum(tau - (second[0] + second[1]), 0)
     decay = jnp.exp(-jnp.maximum(delta - coast_time, 0) / stop_time)
     disp = (jnp.minimum(delta, coast_time) + stop_time * (1 - decay))[..., None]
     p_out = r["p_end"] + r["v_end"] * disp
     q_out = quat_mul(quat_from_rotvec(r["w_end"] * disp), r["q_end"])
-    inside = (tau <= t0 + dur)[..., None]
+    inside = (delta <= 0)[..., None]
     nan = jnp.where(started, 0.0, jnp.nan).astype(dtype)
     p = jnp.where(inside, p_in, p_out) + nan
     q = jnp.where(inside, q_in, q_out) + nan
     if not velocities:
         return p, None, q, None
-    v_in = 5 * c[5]
+    v_in = 5 * c[..., 5, :]
     for j in range(4, 0, -1):
-        v_in = v_in * s + j * c[j]
-    w_in = rot.angular_velocity(s[..., 0])
+        v_in = v_in * s + j * c[..., j, :]
+    w_in = _angular_velocity_at(rot, s[..., 0])
     factor = jnp.where(delta > coast_time, decay, 1.0)[..., None]
-    v = jnp.where(inside, v_in / dur, r["v_end"] * factor) + nan
+    v = jnp.where(inside, v_in / dur[..., None], r["v_end"] * factor) + nan
     w = jnp.where(inside, w_in, r["w_end"] * factor) + nan
     return p, v, q, w
+
+
+def _rotation_at(rot: QuaternionHermite, s):
+    """``rot.rotation`` with curve and parameter batches aligned (one parameter per curve)."""
+    return jnp.vectorize(lambda q0, a, b, c, d, x: QuaternionHermite(q0, a, b, c, d).rotation(x),
+                         signature="(4),(3),(3),(3),(),()->(4)")(
+        rot.q0, rot.w1, rot.w2, rot.w3, rot.duration, s)
+
+
+def _angular_velocity_at(rot: QuaternionHermite, s):
+    return jnp.vectorize(
+        lambda q0, a, b, c, d, x: QuaternionHermite(q0, a, b, c, d).angular_velocity(x),
+        signature="(4),(3),(3),(3),(),()->(3)")(rot.q0, rot.w1, rot.w2, rot.w3, rot.duration, s)
 
 
 @jax.jit
 def _sample_render(render, t_render):
     p, _, q, _ = _eval_render(render, t_render, velocities=False)
     return p, q
+
+
+def _settle(s):
+    """Critically damped decay at ``s`` time constants: weights of the initial offset and of
+    the initial rate (per time constant) and their derivatives (per time constant)."""
+    e = jnp.exp(-s)
+    return (1 + s) * e, -s * e, s * e, (1 - s) * e
 
 
 def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion):
@@ -210,18 +255,34 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion)
     kf, info = kalman_step(config.kalman, state.filter, t, position, quaternion)
     used = info.pos_used | info.rot_used
     h = jnp.asarray(config.horizon, dtype)
+    tc = _SETTLE * h  # time constant of the correction
+    t1 = _KNOT * h  # the knot between the two pieces
+    p_k, q_k, v_k, w_k = predict_pose(config.kalman, kf, t)
+    p_1, q_1, v_1, w_1 = predict_pose(config.kalman, kf, t + t1)
     p_T, q_T, v_T, w_T = predict_pose(config.kalman, kf, t + h)
     # first frame: start at the filter's estimate at rest
-    p_k, q_k, _, _ = predict_pose(config.kalman, kf, t)
     z = jnp.zeros(3, dtype)
     fresh = ~was_init
     p_r = jnp.where(fresh, p_k, p_r)
     v_r = jnp.where(fresh, z, v_r)
     q_r = jnp.where(fresh, q_k, q_r)
     w_r = jnp.where(fresh, z, w_r)
-    curve, rot = _segment(p_r, v_r, q_r, w_r, p_T, v_T, q_T, w_T, h)
+    # the correction (rendered minus predicted) decays critically damped; the knot carries it
+    a, da, b, db = _settle(jnp.asarray(_KNOT / _SETTLE, dtype))
+    dp, dv = p_r - p_k, v_r - v_k
+    p_m = p_1 + a * dp + b * tc * dv
+    v_m = v_1 + da / tc * dp + db * dv
+    dq = quat_mul(q_r, quat_conj(q_k))
+    dth = quat_to_rotvec(jnp.where(dq[..., :1] < 0, -dq, dq))  # shortest arc
+    dw = w_r - w_k
+    q_m = quat_mul(quat_from_rotvec(a * dth + b * tc * dw), q_1)
+    w_m = w_1 + da / tc * dth + db * dw
+    st = lambda x, y: jnp.stack([x, y])  # noqa: E731
+    dur = st(t1, h - t1)
+    curve, rot = _segment(st(p_r, p_m), st(v_r, v_m), st(q_r, q_m), st(w_r, w_m),
+                          st(p_m, p_T), st(v_m, v_T), st(q_m, q_T), st(w_m, w_T), dur)
     rebuild = used & kf.initialized
-    new = _make_state(config, kf, t, h, curve, rot, state.started | kf.initialized)
+    new = _make_state(config, kf, t, dur, curve, rot, state.started | kf.initialized)
     keep = eqx.tree_at(lambda x: x.filter, state, kf)
     return jax.tree.map(lambda a, b: jnp.where(rebuild, a, b), new, keep)
 
@@ -245,7 +306,8 @@ def tracker_update(
 
     Returns:
         The new state. The next render segment starts at the pose and velocity rendered at
-        ``t`` (C1 continuity) and ends at the filter's prediction for ``t + horizon``. A frame
+        ``t`` (C1 continuity) and ends at the filter's prediction for ``t + horizon``,
+        applying the correction like a critically damped system (see the module docs). A frame
         with no valid part only advances the filter (the stream keeps coasting).
     """
     return _update(config, state, t, position, quaternion)

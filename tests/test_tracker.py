@@ -74,6 +74,47 @@ def test_stream_is_c1_across_camera_frames(head):
     assert np.asarray(pj.quat_geodesic_distance(Q[:, 1], Q[:, 2])).max() < 5 * EPS * (1 + float(np.max(wa)))
 
 
+def test_correction_decays_critically_damped(head):
+    """After a frame the rendered-minus-predicted pose follows (c0 (1 + s) + c0' t) exp(-s),
+    s = t / (horizon / 5), at the knot (0.4 horizon), is C1 there, and is 0 at the horizon."""
+    _, _, _, mt, mp, mq = head
+    cfg = pj.TrackerConfig()
+    h = cfg.horizon
+    T, t1 = h / 5, 0.4 * h
+    state = pj.tracker_init(cfg, 0.0, jnp.float64)
+    checked = 0
+    for k in range(30):
+        t = mt[k] - mt[0]
+        p_r, v_r, q_r, w_r = (np.asarray(x) for x in tracker._evaluate(cfg, state, t))
+        state = pj.tracker_update(cfg, state, t, mp[k], mq[k])
+        if k < 3 or not np.isfinite(mp[k]).all() or not np.isfinite(mq[k]).all():
+            continue
+        pk, qk, vk, wk = (np.asarray(x) for x in pj.predict_pose(cfg.kalman, state.filter, t))
+        p1, q1, v1, w1 = (np.asarray(x) for x in pj.predict_pose(cfg.kalman, state.filter, t + t1))
+        pT, qT, _, _ = (np.asarray(x) for x in pj.predict_pose(cfg.kalman, state.filter, t + h))
+        e = np.exp(-2.0)
+        want = p1 + 3 * e * (p_r - pk) + 2 * e * T * (v_r - vk)
+        p_m, v_m, q_m, w_m = (np.asarray(x) for x in tracker._evaluate(cfg, state, t + t1))
+        np.testing.assert_allclose(p_m, want, atol=1e-12)
+        np.testing.assert_allclose(v_m, v1 + (-2 * e / T) * (p_r - pk) - e * (v_r - vk), atol=1e-9)
+        dth = np.asarray(pj.quat_to_rotvec(pj.quat_mul(q_r, pj.quat_conj(qk))))
+        q_want = np.asarray(pj.quat_mul(pj.quat_from_rotvec(3 * e * dth + 2 * e * T * (w_r - wk)), q1))
+        assert float(pj.quat_geodesic_distance(q_m, q_want)) < 1e-10
+        # C1 across the knot between the two pieces
+        eps = 1e-7
+        pa, va, qa, wa = (np.asarray(x) for x in tracker._evaluate(cfg, state, t + t1 - eps))
+        pb, vb, qb, wb = (np.asarray(x) for x in tracker._evaluate(cfg, state, t + t1 + eps))
+        np.testing.assert_allclose(va, vb, atol=1e-4 * (1 + np.abs(va).max()))
+        np.testing.assert_allclose(wa, wb, atol=1e-4 * (1 + np.abs(wa).max()))
+        np.testing.assert_allclose(pb - pa, 2 * eps * va, atol=1e-9)
+        # the prediction is reached at the horizon
+        p_h, _, q_h, _ = (np.asarray(x) for x in tracker._evaluate(cfg, state, t + h))
+        np.testing.assert_allclose(p_h, pT, atol=1e-12)
+        assert float(pj.quat_geodesic_distance(q_h, qT)) < 1e-10
+        checked += 1
+    assert checked > 20
+
+
 def test_track_equals_streaming_loop(head):
     _, _, _, mt, mp, mq = head
     mt, mp, mq = mt[:40], mp[:40], mq[:40]
