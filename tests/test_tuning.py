@@ -181,8 +181,10 @@ def test_tuning_decreases_loss_from_bad_start(data):
                                                   pos_meas_noise=0.05, rot_meas_noise=0.002),
                            horizon=0.2)
     seen = []
-    cfg, res = tuning.tune_tracker(data, lam=0.3, config=bad, max_steps=12, progress=seen.append)
-    assert res.num_steps == len(seen) == len(res.loss_history) <= 12
+    # 20 steps: from this start BFGS overshoots once (step 10) and backtracks for ~8 steps;
+    # with 40 steps it reaches 0.60 x the initial loss (measured)
+    cfg, res = tuning.tune_tracker(data, lam=0.3, config=bad, max_steps=20, progress=seen.append)
+    assert res.num_steps == len(seen) == len(res.loss_history) <= 20
     assert [s.step for s in seen] == list(range(1, res.num_steps + 1))
     assert res.final_loss < 0.8 * res.initial_loss
     assert np.all(np.diff(res.loss_history) <= 0)
