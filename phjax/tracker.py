@@ -38,14 +38,15 @@ from .kalman import (
     KalmanConfig,
     KalmanState,
     kalman_filter,
-    kalman_step,
+    _kalman_step_separable,
     kalman_uninitialized,
     predict_pose,
     rts_smooth,
 )
 from .orientation import QuaternionHermite, quaternion_hermite
 from .ph_quintic import PHQuintic, hermite_quintic
-from .quaternion import quat_from_rotvec, quat_mul, quat_normalize
+from .ph_quintic import _bern_to_power
+from .quaternion import quat_conj, quat_exp, quat_mul, quat_normalize
 
 __all__ = [
     "TrackerConfig",
@@ -101,26 +102,66 @@ class TrackerState(eqx.Module):
     curve: PHQuintic
     rotation: QuaternionHermite
     started: Bool[Array, ""]
-    render: Float[Array, "49"]
+    render: Float[Array, "59"]
 
 
-# layout of TrackerState.render
-_R = dict(t0=(0, 1), dur=(1, 2), started=(2, 3), coef=(3, 21), q0=(21, 25), w1=(25, 28),
-          w2=(28, 31), w3=(31, 34), p_end=(34, 37), v_end=(37, 40), q_end=(40, 44), w_end=(44, 47),
-          coast=(47, 48), stop=(48, 49))
+# layout of TrackerState.render: name -> length. Everything a render sample needs, with the
+# per-segment constants precomputed at update time so that a sample costs few XLA ops: the
+# reciprocals of the duration and of the stop time, and for each exponential of the rotation
+# curve ``exp(b w)`` (``b >= 0``) the norm ``n = |w|`` and ``1/n`` (0 at 0), so that
+# ``exp(b w) = (cos(b n), sin(b n)/n w)`` needs one sin/cos of a small vector and no division.
+_RENDER_LAYOUT = (
+    ("t0", 1), ("t_end", 1), ("inv_dur", 1), ("started", 1), ("coef", 18), ("q0", 4),
+    ("w1", 3), ("w2", 3), ("w3", 3), ("n", 3), ("inv_n", 3),
+    ("p_end", 3), ("v_end", 3), ("q_end", 4), ("w_end", 3), ("n_end", 1), ("inv_n_end", 1),
+    ("coast", 1), ("stop", 1), ("inv_stop", 1),
+)
+_R = {}
+_off = 0
+for _name, _len in _RENDER_LAYOUT:
+    _R[_name] = (_off, _off + _len)
+    _off += _len
+_RENDER_SIZE = _off
+del _off, _name, _len
+
+# Bernstein -> power basis of a quintic (c_j = sum_k _M5[j, k] P_k), as Python numbers
+_M5 = [[float(x) for x in row] for row in _bern_to_power(5)]
 
 
-def _make_state(config, kf, t0, duration, curve, rotation, started) -> TrackerState:
-    """A :class:`TrackerState` with the packed render vector of its segment."""
+def _vnorm_inv(v):
+    """``(|v|, 1/|v|)`` of 3-vectors (``1/|v| = 0`` at 0), finite gradients at 0."""
+    n2 = v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2]
+    pos = n2 > 0
+    n = jnp.where(pos, jnp.sqrt(jnp.where(pos, n2, 1)), 0)
+    return n, jnp.where(pos, 1 / jnp.where(pos, n, 1), 0)
+
+
+def _make_state(config, kf, t0, duration, curve, rotation, started, ends) -> TrackerState:
+    """A :class:`TrackerState` with the packed render vector of its segment.
+
+    ``ends = (p_end, v_end, q_end, w_end)``: the segment's end pose and velocities, i.e. the
+    Hermite data it was built from (``q_end`` with the sign of ``rotation.rotation(1)``).
+    """
+    p_end, v_end, q_end, w_end = ends
     dtype = t0.dtype
-    coef = curve._power(0)
-    one = jnp.ones((), dtype)
-    p_end = jnp.sum(coef, axis=-2)
-    v_end = jnp.sum(coef * jnp.arange(6, dtype=dtype)[:, None], axis=-2) / duration
-    parts = [t0[None], duration[None], started.astype(dtype)[None], coef.reshape(18),
-             rotation.q0, rotation.w1, rotation.w2, rotation.w3, p_end, v_end,
-             rotation.rotation(one), rotation.angular_velocity(one),
-             jnp.asarray(config.coast_time, dtype)[None], jnp.asarray(config.stop_time, dtype)[None]]
+    cp = curve.control_points
+    pts = [cp[k] for k in range(6)]
+    coef = []
+    for j in range(6):
+        acc = None
+        for k in range(j + 1):
+            term = pts[k] if _M5[j][k] == 1 else _M5[j][k] * pts[k]
+            acc = term if acc is None else acc + term
+        coef.append(acc)
+    inv_dur = 1 / duration
+    w_all = jnp.stack([rotation.w1, rotation.w2, rotation.w3])
+    n, inv_n = _vnorm_inv(w_all)
+    n_end, inv_n_end = _vnorm_inv(w_end)
+    stop = jnp.asarray(config.stop_time, dtype)
+    parts = [t0[None], (t0 + duration)[None], inv_dur[None], started.astype(dtype)[None],
+             jnp.concatenate(coef), rotation.q0, w_all.reshape(9), n, inv_n, p_end, v_end,
+             q_end, w_end, (n_end / 2)[None], inv_n_end[None],
+             jnp.asarray(config.coast_time, dtype)[None], stop[None], (1 / stop)[None]]
     render = jnp.concatenate([jnp.asarray(x, dtype) for x in parts])
     return TrackerState(kf, t0, duration, curve, rotation, started, render)
 
@@ -130,6 +171,18 @@ def _segment(p0, v0, q0, w0, p1, v1, q1, w1, duration):
     curve = hermite_quintic(p0, p1, v0 * dur, v1 * dur)
     rot = quaternion_hermite(q0, q1, w0, w1, duration)
     return curve, rot
+
+
+def _rotation_end(q0, q1, w0, w1, duration):
+    """``quaternion_hermite(q0, q1, w0, w1, duration).rotation(1)`` without evaluating it.
+
+    The curve ends at ``q1`` or ``-q1``: ``-q1`` exactly when the middle factor was flipped to its
+    shortest arc (same expressions as :func:`quaternion_hermite`, shared by XLA's CSE).
+    """
+    a = duration * w0 / 6
+    c = duration * w1 / 6
+    mid = quat_mul(quat_mul(quat_exp(-c), quat_mul(q1, quat_conj(q0))), quat_exp(-a))
+    return jnp.where(mid[..., :1] < 0, -q1, q1)
 
 
 def tracker_init(config: TrackerConfig | None = None, t: float = 0.0, dtype=None) -> TrackerState:
@@ -150,7 +203,7 @@ def tracker_init(config: TrackerConfig | None = None, t: float = 0.0, dtype=None
     q = jnp.asarray([1.0, 0, 0, 0], dtype)
     one = jnp.ones((), dtype)
     curve, rot = _segment(z3, z3, q, z3, z3, z3, q, z3, one)
-    return _make_state(config, kf, jnp.asarray(t, dtype), one, curve, rot, jnp.asarray(False))
+    return _make_state(config, kf, jnp.asarray(t, dtype), one, curve, rot, jnp.asarray(False), (z3, z3, q, z3))
 
 
 def _evaluate(config: TrackerConfig, state: TrackerState, tau, velocities: bool = True):
@@ -159,38 +212,87 @@ def _evaluate(config: TrackerConfig, state: TrackerState, tau, velocities: bool 
     return _eval_render(state.render, tau, velocities)
 
 
+def _qmul_c(a, b):
+    """Hamilton product on component tuples ``(w, x, y, z)`` (same association as quat_mul)."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    w = aw * bw - (ax * bx + ay * by + az * bz)
+    x = aw * bx + bw * ax + (ay * bz - az * by)
+    y = aw * by + bw * ay + (az * bx - ax * bz)
+    z = aw * bz + bw * az + (ax * by - ay * bx)
+    return w, x, y, z
+
+
+def _rotate_c(q, v):
+    """Vector part of ``q v q*`` for a unit quaternion and a vector, on component tuples."""
+    w, ux, uy, uz = q
+    vx, vy, vz = v
+    tx, ty, tz = 2 * (uy * vz - uz * vy), 2 * (uz * vx - ux * vz), 2 * (ux * vy - uy * vx)
+    return (vx + w * tx + (uy * tz - uz * ty), vy + w * ty + (uz * tx - ux * tz),
+            vz + w * tz + (ux * ty - uy * tx))
+
+
 def _eval_render(render, tau, velocities: bool = True):
-    r = {k: render[a:b] for k, (a, b) in _R.items()}
-    coast_time, stop_time = r["coast"][0], r["stop"][0]
+    """Pose (and velocities) of the packed render vector at time(s) ``tau`` (see ``_R``).
+
+    Written on scalar components with the transcendental functions of one sample gathered in
+    one sin, one cos and one exp, so that XLA compiles it to a handful of fused kernels.
+    """
     dtype = render.dtype
+    r = {k: render[a:b] for k, (a, b) in _R.items()}
+    g = lambda k, i=0: r[k][i]  # noqa: E731
     tau = jnp.asarray(tau, dtype)
-    t0, dur, started = r["t0"][0], r["dur"][0], r["started"][0] > 0
+    t0, t_end, inv_dur = g("t0"), g("t_end"), g("inv_dur")
+    coast, stop, inv_stop = g("coast"), g("stop"), g("inv_stop")
+    s = jnp.clip((tau - t0) * inv_dur, 0, 1)
+    # beyond the segment end: coast, then come to rest smoothly
+    delta = jnp.maximum(tau - t_end, 0)
+    decay = jnp.exp(-jnp.maximum(delta - coast, 0) * inv_stop)
+    disp = jnp.minimum(delta, coast) + stop * (1 - decay)
+    inside = tau <= t_end
+    nan = jnp.where(g("started") > 0, 0.0, jnp.nan).astype(dtype)
+    # rotation curve q(s) = exp(b3 w3) exp(b2 w2) exp(b1 w1) q0; coasting exp(w_end disp / 2) q_end
+    cs = 1 - s
+    b = (1 - cs * cs * cs, s * s * (3 - 2 * s), s * s * s)
+    ang = jnp.stack([b[0] * g("n", 0), b[1] * g("n", 1), b[2] * g("n", 2), disp * g("n_end")], -1)
+    sin, cos = jnp.sin(ang), jnp.cos(ang)
+    ws = [tuple(g(k, i) for i in range(3)) for k in ("w1", "w2", "w3")]
+    exps = []
+    for j in range(3):
+        nj = g("n", j)
+        k = jnp.where(nj > 0, sin[..., j] * g("inv_n", j), b[j])
+        exps.append((cos[..., j],) + tuple(k * x for x in ws[j]))
+    q_in = tuple(g("q0", i) for i in range(4))
+    for e in exps:
+        q_in = _qmul_c(e, q_in)
+    w_end = tuple(g("w_end", i) for i in range(3))
+    k_end = jnp.where(g("n_end") > 0, sin[..., 3] * g("inv_n_end"), disp / 2)
+    e_end = (cos[..., 3],) + tuple(k_end * x for x in w_end)
+    q_out = _qmul_c(e_end, tuple(g("q_end", i) for i in range(4)))
+    q = jnp.stack([jnp.where(inside, a, c) + nan for a, c in zip(q_in, q_out)], -1)
+    # position: Horner on the power basis
+    sv = s[..., None]
     c = r["coef"].reshape(6, 3)
-    rot = QuaternionHermite(r["q0"], r["w1"], r["w2"], r["w3"], dur)
-    s = jnp.clip((tau - t0) / dur, 0, 1)[..., None]
     p_in = c[5]
     for j in range(4, -1, -1):
-        p_in = p_in * s + c[j]
-    q_in = rot.rotation(s[..., 0])
-    # beyond the segment end: coast, then come to rest smoothly
-    delta = jnp.maximum(tau - (t0 + dur), 0)
-    decay = jnp.exp(-jnp.maximum(delta - coast_time, 0) / stop_time)
-    disp = (jnp.minimum(delta, coast_time) + stop_time * (1 - decay))[..., None]
-    p_out = r["p_end"] + r["v_end"] * disp
-    q_out = quat_mul(quat_from_rotvec(r["w_end"] * disp), r["q_end"])
-    inside = (tau <= t0 + dur)[..., None]
-    nan = jnp.where(started, 0.0, jnp.nan).astype(dtype)
-    p = jnp.where(inside, p_in, p_out) + nan
-    q = jnp.where(inside, q_in, q_out) + nan
+        p_in = p_in * sv + c[j]
+    p_out = r["p_end"] + r["v_end"] * disp[..., None]
+    p = jnp.where(inside[..., None], p_in, p_out) + nan
     if not velocities:
         return p, None, q, None
     v_in = 5 * c[5]
     for j in range(4, 0, -1):
-        v_in = v_in * s + j * c[j]
-    w_in = rot.angular_velocity(s[..., 0])
-    factor = jnp.where(delta > coast_time, decay, 1.0)[..., None]
-    v = jnp.where(inside, v_in / dur, r["v_end"] * factor) + nan
-    w = jnp.where(inside, w_in, r["w_end"] * factor) + nan
+        v_in = v_in * sv + j * c[j]
+    factor = jnp.where(delta > coast, decay, 1.0)[..., None]
+    v = jnp.where(inside[..., None], v_in * inv_dur, r["v_end"] * factor) + nan
+    # world angular velocity: q' q* = d3 w3 + E3 (d2 w2) E3* + E3 E2 (d1 w1) E2* E3* (per unit s)
+    d = (3 * cs * cs, 6 * s * cs, 3 * s * s)
+    e32 = _qmul_c(exps[2], exps[1])
+    om2 = _rotate_c(exps[2], tuple(d[1] * x for x in ws[1]))
+    om1 = _rotate_c(e32, tuple(d[0] * x for x in ws[0]))
+    om = [d[2] * ws[2][i] + om2[i] + om1[i] for i in range(3)]
+    w_in = jnp.stack([2 * x * inv_dur for x in om], -1)
+    w = jnp.where(inside[..., None], w_in, r["w_end"] * factor) + nan
     return p, v, q, w
 
 
@@ -206,13 +308,14 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion)
     position = jnp.asarray(position, dtype)
     quaternion = jnp.asarray(quaternion, dtype)
     was_init = state.filter.initialized
-    p_r, v_r, q_r, w_r = _evaluate(config, state, t)
-    kf, info = kalman_step(config.kalman, state.filter, t, position, quaternion)
+    p_r, v_r, q_r, w_r = _eval_render(state.render, t)
+    kf, info = _kalman_step_separable(config.kalman, state.filter, t, position, quaternion)
     used = info.pos_used | info.rot_used
     h = jnp.asarray(config.horizon, dtype)
     p_T, q_T, v_T, w_T = predict_pose(config.kalman, kf, t + h)
-    # first frame: start at the filter's estimate at rest
-    p_k, q_k, _, _ = predict_pose(config.kalman, kf, t)
+    # first frame: start at the filter's estimate at rest (kf.t == t: its mean, normalised as
+    # predict_pose(kf, t) would)
+    p_k, q_k = kf.x[:3], quat_normalize(kf.q)
     z = jnp.zeros(3, dtype)
     fresh = ~was_init
     p_r = jnp.where(fresh, p_k, p_r)
@@ -220,8 +323,10 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion)
     q_r = jnp.where(fresh, q_k, q_r)
     w_r = jnp.where(fresh, z, w_r)
     curve, rot = _segment(p_r, v_r, q_r, w_r, p_T, v_T, q_T, w_T, h)
+    q_end = _rotation_end(q_r, q_T, w_r, w_T, h)
     rebuild = used & kf.initialized
-    new = _make_state(config, kf, t, h, curve, rot, state.started | kf.initialized)
+    new = _make_state(config, kf, t, h, curve, rot, state.started | kf.initialized,
+                      (p_T, v_T, q_end, w_T))
     keep = eqx.tree_at(lambda x: x.filter, state, kf)
     return jax.tree.map(lambda a, b: jnp.where(rebuild, a, b), new, keep)
 
