@@ -42,6 +42,15 @@ Jacobian of ``dtheta_new = log(exp(dtheta + e) exp(-dtheta)) ~ J_l(dtheta) e``, 
 ``Pr <- G Pr G^T`` with ``G = diag(J_l(dtheta), I)``. Covariance updates use the Joseph form and
 are symmetrised.
 
+Low-latency step (used by the streaming tracker, ``_kalman_step_separable``): ``F``, ``Q``, ``H``
+and ``R`` above act on each position axis alone, so a position covariance without cross-axis
+terms (``P[3i + a, 3j + b] = 0`` for ``a != b``, the form :func:`kalman_init` creates and
+predict/update preserve) stays so, and the position filter is three independent ``n``-state
+filters with scalar innovation variances ``s = P1[0, 0] + sigma^2``. The orientation update
+inverts the 3x3 ``S = Pr_tt + sigma_r^2 I`` in closed form (adjugate / determinant); the Joseph
+form is written blockwise; all products are elementwise code (no ``dot``, no LAPACK), which is
+what costs on XLA:CPU for matrices this small. Same results as :func:`kalman_step` to rounding.
+
 Conventions and behaviour:
 
 * ``dt = t - state.t`` is clamped at 0: predicting to an earlier (or NaN) time is a no-op and the

@@ -90,10 +90,11 @@ class TrackerState(eqx.Module):
         curve: position segment on the parameter ``(t - t0) / duration``.
         rotation: orientation segment on the same parameter.
         started: whether a valid measurement has been seen (before that samples are NaN).
-        render: everything a render sample needs, packed in one vector (segment start and
-            duration, ``started``, the power basis of ``curve``, the rotation curve, and the
-            end pose and velocities and the coasting parameters of the config of the last
-            update), so that :func:`tracker_sample` passes a single array to its kernel.
+        render: everything a render sample needs, packed in one vector (segment start, end and
+            reciprocal duration, ``started``, the power basis of ``curve``, the rotation curve with
+            the norms and reciprocal norms of its increments, the end pose and velocities, and
+            the coasting parameters of the config of the last update; layout ``_R``), so that
+            :func:`tracker_sample` passes a single array to a kernel of a few fused operations.
     """
 
     filter: KalmanState
