@@ -44,15 +44,22 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from .kalman import (
     KalmanConfig,
     KalmanState,
+    _kalman_step_separable,
     kalman_filter,
-    kalman_step,
     kalman_uninitialized,
     predict_pose,
     rts_smooth,
 )
 from .orientation import QuaternionHermite, quaternion_hermite
-from .ph_quintic import PHQuintic, hermite_quintic
-from .quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
+from .ph_quintic import PHQuintic, _bern_to_power, hermite_quintic
+from .quaternion import (
+    quat_conj,
+    quat_exp,
+    quat_from_rotvec,
+    quat_mul,
+    quat_normalize,
+    quat_to_rotvec,
+)
 
 __all__ = [
     "TrackerConfig",
@@ -105,11 +112,12 @@ class TrackerState(eqx.Module):
             parameter ``(t - start) / duration``.
         rotation: the two orientation pieces (a :class:`QuaternionHermite` batch of 2).
         started: whether a valid measurement has been seen (before that samples are NaN).
-        render: everything a render sample needs, packed in one vector (per piece: start,
-            duration, the power basis of the position piece and the rotation piece; then
-            ``started``, the end pose and velocities and the coasting parameters of the config
-            of the last update), so that :func:`tracker_sample` passes a single array to its
-            kernel.
+        render: everything a render sample needs, packed in one vector (layout ``_R``): per
+            piece its start, end and reciprocal duration, the power basis of its position
+            curve, its rotation curve with the norms and reciprocal norms of the increments;
+            then ``started``, the end pose and velocities and the coasting parameters of the
+            config of the last update. :func:`tracker_sample` passes this single array to a
+            kernel of a few fused operations.
     """
 
     filter: KalmanState
@@ -118,30 +126,71 @@ class TrackerState(eqx.Module):
     curve: PHQuintic
     rotation: QuaternionHermite
     started: Bool[Array, ""]
-    render: Float[Array, "82"]
+    render: Float[Array, "99"]
 
 
-# layout of TrackerState.render: two piece blocks of _PIECE values, then the common part
-_PIECE = 33  # start, duration, power basis (18), q0 (4), w1, w2, w3 (9)
-_R = dict(started=(66, 67), p_end=(67, 70), v_end=(70, 73), q_end=(73, 77), w_end=(77, 80),
-          coast=(80, 81))
-_RENDER_SIZE = 82  # + stop at 81
+# layout of TrackerState.render: two piece blocks, then the common part. The per-piece
+# constants are precomputed at update time so that a sample costs few XLA ops: the reciprocal
+# of the duration and, for each exponential of the rotation curve ``exp(b w)`` (``b >= 0``),
+# the norm ``n = |w|`` and ``1/n`` (0 at 0), so that ``exp(b w) = (cos(b n), sin(b n)/n w)``
+# needs one sin/cos of a small vector and no division.
+_PIECE_LAYOUT = (("t0", 1), ("t_end", 1), ("inv_dur", 1), ("coef", 18), ("q0", 4), ("w1", 3),
+                 ("w2", 3), ("w3", 3), ("n", 3), ("inv_n", 3))
+_COMMON_LAYOUT = (("started", 1), ("p_end", 3), ("v_end", 3), ("q_end", 4), ("w_end", 3),
+                  ("n_end", 1), ("inv_n_end", 1), ("coast", 1), ("stop", 1), ("inv_stop", 1))
 
 
-def _make_state(config, kf, t0, duration, curve, rotation, started) -> TrackerState:
-    """A :class:`TrackerState` with the packed render vector of its two pieces."""
+def _offsets(layout, off=0):
+    out = {}
+    for name, n in layout:
+        out[name] = (off, off + n)
+        off += n
+    return out, off
+
+
+_P, _PIECE = _offsets(_PIECE_LAYOUT)
+_R, _RENDER_SIZE = _offsets(_COMMON_LAYOUT, 2 * _PIECE)
+
+# Bernstein -> power basis of a quintic (c_j = sum_k _M5[j, k] P_k), as Python numbers
+_M5 = [[float(x) for x in row] for row in _bern_to_power(5)]
+
+
+def _vnorm_inv(v):
+    """``(|v|, 1/|v|)`` of 3-vectors (``1/|v| = 0`` at 0), finite gradients at 0."""
+    n2 = v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2]
+    pos = n2 > 0
+    n = jnp.where(pos, jnp.sqrt(jnp.where(pos, n2, 1)), 0)
+    return n, jnp.where(pos, 1 / jnp.where(pos, n, 1), 0)
+
+
+def _make_state(config, kf, t0, duration, curve, rotation, started, ends) -> TrackerState:
+    """A :class:`TrackerState` with the packed render vector of its two pieces.
+
+    ``ends = (p_end, v_end, q_end, w_end)``: the end pose and velocities of the second piece,
+    i.e. the Hermite data it was built from (``q_end`` with the sign of its ``rotation(1)``).
+    """
+    p_end, v_end, q_end, w_end = ends
     dtype = t0.dtype
-    coef = curve._power(0)  # (2, 6, 3)
-    one = jnp.ones((), dtype)
-    p_end = jnp.sum(coef[1], axis=-2)
-    v_end = jnp.sum(coef[1] * jnp.arange(6, dtype=dtype)[:, None], axis=-2) / duration[1]
+    cp = curve.control_points  # (2, 6, 3)
+    pts = [cp[:, k] for k in range(6)]
+    coef = []
+    for j in range(6):
+        acc = None
+        for k in range(j + 1):
+            term = pts[k] if _M5[j][k] == 1 else _M5[j][k] * pts[k]
+            acc = term if acc is None else acc + term
+        coef.append(acc)
     starts = jnp.stack([t0, t0 + duration[0]])
-    pieces = jnp.concatenate([starts[:, None], duration[:, None], coef.reshape(2, 18),
-                              rotation.q0, rotation.w1, rotation.w2, rotation.w3], axis=-1)
-    last = jax.tree.map(lambda x: x[1], rotation)
-    parts = [pieces.reshape(2 * _PIECE), started.astype(dtype)[None], p_end, v_end,
-             last.rotation(one), last.angular_velocity(one),
-             jnp.asarray(config.coast_time, dtype)[None], jnp.asarray(config.stop_time, dtype)[None]]
+    w_all = jnp.stack([rotation.w1, rotation.w2, rotation.w3], axis=1)  # (2, 3, 3)
+    n, inv_n = _vnorm_inv(w_all)
+    pieces = jnp.concatenate([starts[:, None], (starts + duration)[:, None], (1 / duration)[:, None],
+                              jnp.concatenate(coef, axis=-1), rotation.q0, w_all.reshape(2, 9),
+                              n, inv_n], axis=-1)
+    n_end, inv_n_end = _vnorm_inv(w_end)
+    stop = jnp.asarray(config.stop_time, dtype)
+    parts = [pieces.reshape(2 * _PIECE), started.astype(dtype)[None], p_end, v_end, q_end, w_end,
+             (n_end / 2)[None], inv_n_end[None], jnp.asarray(config.coast_time, dtype)[None],
+             stop[None], (1 / stop)[None]]
     render = jnp.concatenate([jnp.asarray(x, dtype) for x in parts])
     return TrackerState(kf, t0, duration, curve, rotation, started, render)
 
@@ -151,6 +200,18 @@ def _segment(p0, v0, q0, w0, p1, v1, q1, w1, duration):
     curve = hermite_quintic(p0, p1, v0 * dur, v1 * dur)
     rot = quaternion_hermite(q0, q1, w0, w1, duration)
     return curve, rot
+
+
+def _rotation_end(q0, q1, w0, w1, duration):
+    """``quaternion_hermite(q0, q1, w0, w1, duration).rotation(1)`` without evaluating it.
+
+    The curve ends at ``q1`` or ``-q1``: ``-q1`` exactly when the middle factor was flipped to its
+    shortest arc (same expressions as :func:`quaternion_hermite`, shared by XLA's CSE).
+    """
+    a = duration * w0 / 6
+    c = duration * w1 / 6
+    mid = quat_mul(quat_mul(quat_exp(-c), quat_mul(q1, quat_conj(q0))), quat_exp(-a))
+    return jnp.where(mid[..., :1] < 0, -q1, q1)
 
 
 def tracker_init(config: TrackerConfig | None = None, t: float = 0.0, dtype=None) -> TrackerState:
@@ -171,7 +232,8 @@ def tracker_init(config: TrackerConfig | None = None, t: float = 0.0, dtype=None
     q = jnp.broadcast_to(jnp.asarray([1.0, 0, 0, 0], dtype), (2, 4))
     dur = jnp.full((2,), 0.5, dtype)
     curve, rot = _segment(z3, z3, q, z3, z3, z3, q, z3, dur)
-    return _make_state(config, kf, jnp.asarray(t, dtype), dur, curve, rot, jnp.asarray(False))
+    return _make_state(config, kf, jnp.asarray(t, dtype), dur, curve, rot, jnp.asarray(False),
+                       (z3[0], z3[0], q[0], z3[0]))
 
 
 def _evaluate(config: TrackerConfig, state: TrackerState, tau, velocities: bool = True):
@@ -180,56 +242,94 @@ def _evaluate(config: TrackerConfig, state: TrackerState, tau, velocities: bool 
     return _eval_render(state.render, tau, velocities)
 
 
+def _qmul_c(a, b):
+    """Hamilton product on component tuples ``(w, x, y, z)`` (same association as quat_mul)."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    w = aw * bw - (ax * bx + ay * by + az * bz)
+    x = aw * bx + bw * ax + (ay * bz - az * by)
+    y = aw * by + bw * ay + (az * bx - ax * bz)
+    z = aw * bz + bw * az + (ax * by - ay * bx)
+    return w, x, y, z
+
+
+def _rotate_c(q, v):
+    """Vector part of ``q v q*`` for a unit quaternion and a vector, on component tuples."""
+    w, ux, uy, uz = q
+    vx, vy, vz = v
+    tx, ty, tz = 2 * (uy * vz - uz * vy), 2 * (uz * vx - ux * vz), 2 * (ux * vy - uy * vx)
+    return (vx + w * tx + (uy * tz - uz * ty), vy + w * ty + (uz * tx - ux * tz),
+            vz + w * tz + (ux * ty - uy * tx))
+
+
 def _eval_render(render, tau, velocities: bool = True):
-    r = {k: render[a:b] for k, (a, b) in _R.items()}
-    coast_time, stop_time = r["coast"][0], render[_RENDER_SIZE - 1]
+    """Pose (and velocities) of the packed render vector at time(s) ``tau`` (see ``_R``).
+
+    Selects the piece that covers ``tau`` (the second from its start on), then evaluates it
+    on scalar components with the transcendental functions of one sample gathered in one sin,
+    one cos and one exp, so that XLA compiles it to a handful of fused kernels.
+    """
     dtype = render.dtype
     tau = jnp.asarray(tau, dtype)
-    started = r["started"][0] > 0
-    # the piece that covers tau (the second from its start on)
     first, second = render[:_PIECE], render[_PIECE:2 * _PIECE]
-    piece = jnp.where((tau >= second[0])[..., None], second, first)
-    t0, dur, c = piece[..., 0], piece[..., 1], piece[..., 2:20].reshape(piece.shape[:-1] + (6, 3))
-    rot = QuaternionHermite(piece[..., 20:24], piece[..., 24:27], piece[..., 27:30],
-                            piece[..., 30:33], dur)
-    s = jnp.clip((tau - t0) / dur, 0, 1)[..., None]
-    p_in = c[..., 5, :]
-    for j in range(4, -1, -1):
-        p_in = p_in * s + c[..., j, :]
-    q_in = _rotation_at(rot, s[..., 0])
+    pc = jnp.where((tau >= second[0])[..., None], second, first)  # (*T, _PIECE)
+    r = {k: render[a:b] for k, (a, b) in _R.items()}
+    g = lambda k, i=0: r[k][i]  # noqa: E731
+    gp = lambda k, i=0: pc[..., _P[k][0] + i]  # noqa: E731
+    t0, inv_dur = gp("t0"), gp("inv_dur")
+    t_end = second[_P["t_end"][0]]
+    coast, stop, inv_stop = g("coast"), g("stop"), g("inv_stop")
+    s = jnp.clip((tau - t0) * inv_dur, 0, 1)
     # beyond the segment end: coast, then come to rest smoothly
-    delta = jnp.maximum(tau - (second[0] + second[1]), 0)
-    decay = jnp.exp(-jnp.maximum(delta - coast_time, 0) / stop_time)
-    disp = (jnp.minimum(delta, coast_time) + stop_time * (1 - decay))[..., None]
-    p_out = r["p_end"] + r["v_end"] * disp
-    q_out = quat_mul(quat_from_rotvec(r["w_end"] * disp), r["q_end"])
-    inside = (delta <= 0)[..., None]
-    nan = jnp.where(started, 0.0, jnp.nan).astype(dtype)
-    p = jnp.where(inside, p_in, p_out) + nan
-    q = jnp.where(inside, q_in, q_out) + nan
+    delta = jnp.maximum(tau - t_end, 0)
+    decay = jnp.exp(-jnp.maximum(delta - coast, 0) * inv_stop)
+    disp = jnp.minimum(delta, coast) + stop * (1 - decay)
+    inside = tau <= t_end
+    nan = jnp.where(g("started") > 0, 0.0, jnp.nan).astype(dtype)
+    # rotation curve q(s) = exp(b3 w3) exp(b2 w2) exp(b1 w1) q0; coasting exp(w_end disp / 2) q_end
+    cs = 1 - s
+    b = (1 - cs * cs * cs, s * s * (3 - 2 * s), s * s * s)
+    ang = jnp.stack([b[0] * gp("n", 0), b[1] * gp("n", 1), b[2] * gp("n", 2),
+                     disp * g("n_end")], -1)
+    sin, cos = jnp.sin(ang), jnp.cos(ang)
+    ws = [tuple(gp(k, i) for i in range(3)) for k in ("w1", "w2", "w3")]
+    exps = []
+    for j in range(3):
+        k = jnp.where(gp("n", j) > 0, sin[..., j] * gp("inv_n", j), b[j])
+        exps.append((cos[..., j],) + tuple(k * x for x in ws[j]))
+    q_in = tuple(gp("q0", i) for i in range(4))
+    for e in exps:
+        q_in = _qmul_c(e, q_in)
+    w_end = tuple(g("w_end", i) for i in range(3))
+    k_end = jnp.where(g("n_end") > 0, sin[..., 3] * g("inv_n_end"), disp / 2)
+    e_end = (cos[..., 3],) + tuple(k_end * x for x in w_end)
+    q_out = _qmul_c(e_end, tuple(g("q_end", i) for i in range(4)))
+    q = jnp.stack([jnp.where(inside, a, c) + nan for a, c in zip(q_in, q_out)], -1)
+    # position: Horner on the power basis
+    sv = s[..., None]
+    a0 = _P["coef"][0]
+    c = [pc[..., a0 + 3 * j:a0 + 3 * j + 3] for j in range(6)]
+    p_in = c[5]
+    for j in range(4, -1, -1):
+        p_in = p_in * sv + c[j]
+    p_out = r["p_end"] + r["v_end"] * disp[..., None]
+    p = jnp.where(inside[..., None], p_in, p_out) + nan
     if not velocities:
         return p, None, q, None
-    v_in = 5 * c[..., 5, :]
+    v_in = 5 * c[5]
     for j in range(4, 0, -1):
-        v_in = v_in * s + j * c[..., j, :]
-    w_in = _angular_velocity_at(rot, s[..., 0])
-    factor = jnp.where(delta > coast_time, decay, 1.0)[..., None]
-    v = jnp.where(inside, v_in / dur[..., None], r["v_end"] * factor) + nan
-    w = jnp.where(inside, w_in, r["w_end"] * factor) + nan
+        v_in = v_in * sv + j * c[j]
+    factor = jnp.where(delta > coast, decay, 1.0)[..., None]
+    v = jnp.where(inside[..., None], v_in * inv_dur[..., None], r["v_end"] * factor) + nan
+    # world angular velocity: q' q* = d3 w3 + E3 (d2 w2) E3* + E3 E2 (d1 w1) E2* E3* (per unit s)
+    d = (3 * cs * cs, 6 * s * cs, 3 * s * s)
+    e32 = _qmul_c(exps[2], exps[1])
+    om2 = _rotate_c(exps[2], tuple(d[1] * x for x in ws[1]))
+    om1 = _rotate_c(e32, tuple(d[0] * x for x in ws[0]))
+    om = [d[2] * ws[2][i] + om2[i] + om1[i] for i in range(3)]
+    w_in = jnp.stack([2 * x * inv_dur for x in om], -1)
+    w = jnp.where(inside[..., None], w_in, r["w_end"] * factor) + nan
     return p, v, q, w
-
-
-def _rotation_at(rot: QuaternionHermite, s):
-    """``rot.rotation`` with curve and parameter batches aligned (one parameter per curve)."""
-    return jnp.vectorize(lambda q0, a, b, c, d, x: QuaternionHermite(q0, a, b, c, d).rotation(x),
-                         signature="(4),(3),(3),(3),(),()->(4)")(
-        rot.q0, rot.w1, rot.w2, rot.w3, rot.duration, s)
-
-
-def _angular_velocity_at(rot: QuaternionHermite, s):
-    return jnp.vectorize(
-        lambda q0, a, b, c, d, x: QuaternionHermite(q0, a, b, c, d).angular_velocity(x),
-        signature="(4),(3),(3),(3),(),()->(3)")(rot.q0, rot.w1, rot.w2, rot.w3, rot.duration, s)
 
 
 @jax.jit
@@ -251,13 +351,14 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion)
     position = jnp.asarray(position, dtype)
     quaternion = jnp.asarray(quaternion, dtype)
     was_init = state.filter.initialized
-    p_r, v_r, q_r, w_r = _evaluate(config, state, t)
-    kf, info = kalman_step(config.kalman, state.filter, t, position, quaternion)
+    p_r, v_r, q_r, w_r = _eval_render(state.render, t)
+    kf, info = _kalman_step_separable(config.kalman, state.filter, t, position, quaternion)
     used = info.pos_used | info.rot_used
     h = jnp.asarray(config.horizon, dtype)
     tc = _SETTLE * h  # time constant of the correction
     t1 = _KNOT * h  # the knot between the two pieces
-    p_k, q_k, v_k, w_k = predict_pose(config.kalman, kf, t)
+    # the filter's estimate at t (kf.t == t: its mean, normalised as predict_pose would)
+    p_k, v_k, q_k, w_k = kf.x[:3], kf.x[3:6], quat_normalize(kf.q), kf.w
     p_1, q_1, v_1, w_1 = predict_pose(config.kalman, kf, t + t1)
     p_T, q_T, v_T, w_T = predict_pose(config.kalman, kf, t + h)
     # first frame: start at the filter's estimate at rest
@@ -281,8 +382,10 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion)
     dur = st(t1, h - t1)
     curve, rot = _segment(st(p_r, p_m), st(v_r, v_m), st(q_r, q_m), st(w_r, w_m),
                           st(p_m, p_T), st(v_m, v_T), st(q_m, q_T), st(w_m, w_T), dur)
+    q_end = _rotation_end(q_m, q_T, w_m, w_T, h - t1)
     rebuild = used & kf.initialized
-    new = _make_state(config, kf, t, dur, curve, rot, state.started | kf.initialized)
+    new = _make_state(config, kf, t, dur, curve, rot, state.started | kf.initialized,
+                      (p_T, v_T, q_end, w_T))
     keep = eqx.tree_at(lambda x: x.filter, state, kf)
     return jax.tree.map(lambda a, b: jnp.where(rebuild, a, b), new, keep)
 
