@@ -938,12 +938,14 @@ def rgbd_relative_pose(
     loss. It is skipped when RANSAC failed, and its result is kept only when the last level
     reports ``OK`` or ``NOT_CONVERGED`` (budget used up, the normal case); otherwise the RANSAC
     motion is returned (``refined=False``). The refinement removes the dependence on the
-    RANSAC seed when few matches are consistent, at the price of converging to the
-    *depth-consistent* motion: on the slambook2 frames (Kinect, 0.2-0.7 m baselines) it gives
-    every seed the same answer within about 0.1 degree / 1 cm, but on 3 -> 4 that answer lies
-    6-7 cm from the published poses (an independent depth odometry, ``cv2.Odometry``, agrees
-    with it to about 1 cm), so it is off by default. Adds about 0.5 s per pair on 2 CPU cores
-    (after a one-off compilation).
+    RANSAC seed when few matches are consistent, but converges to the *depth-consistent*
+    motion. Measured on the slambook2 frames (Kinect, 0.2-0.7 m baselines, seeds 0-7, errors
+    against the given, approximate poses): 1 -> 2 goes from 1.4-4.7 degrees / 4.9-18 cm to
+    1.4 degrees / 2.8-3.1 cm, 2 -> 3 from 0.7-0.9 / 2.4-3.5 to 0.56 / 2.7-2.8, 4 -> 5 stays at
+    0.2 / 1.5, but 3 -> 4 goes from 0.4-1.8 / 2.9-20 to 1.2 degrees / 7.3-7.5 cm (a depth
+    odometry, ``cv2.Odometry`` DEPTH, lands 7.2 cm from the given pose as well, its colour
+    odometry 1-3 cm: there the depth and the given pose disagree). Hence it is off by
+    default. It adds about 0.4 s per pair on 2 CPU cores (after a one-off compilation).
 
     Returns:
         A :class:`RelativePose` mapping points of ``a`` into ``b``.
