@@ -945,7 +945,7 @@ def rgbd_relative_pose(
     0.2 / 1.5, but 3 -> 4 goes from 0.4-1.8 / 2.9-20 to 1.2 degrees / 7.3-7.5 cm (a depth
     odometry, ``cv2.Odometry`` DEPTH, lands 7.2 cm from the given pose as well, its colour
     odometry 1-3 cm: there the depth and the given pose disagree). Hence it is off by
-    default. It adds about 0.4 s per pair on 2 CPU cores (after a one-off compilation).
+    default. It adds 0.1-0.4 s per pair on 2 shared CPU cores (after a one-off compilation).
 
     Returns:
         A :class:`RelativePose` mapping points of ``a`` into ``b``.
