@@ -866,8 +866,13 @@ class DenseRefinement:
     loss_scale: float = 0.03
     max_depth: float = 6.0
     normal_radius: int = 2
+    feature_weight: float | None = None
+    depth_noise: float = 1.425e-3
+    pixel_noise: float = 1.0
 
     def __post_init__(self):
+        if self.feature_weight is not None and not self.feature_weight >= 0:
+            raise ValueError(f"feature_weight must be None or >= 0, got {self.feature_weight}")
         if not (len(self.levels) == len(self.iterations) == len(self.distances) >= 1):
             raise ValueError("levels, iterations and distances need one entry per level")
         for st, ss in self.levels:
@@ -890,12 +895,27 @@ def _pair_core(key, pa, oka, da, pb, okb, db, ratio, threshold, metric, iteratio
     w = jnp.where(ok, 1.0 / jnp.maximum(z, 1e-3) ** depth_power, 0)
     # hypotheses are drawn with probability ~ w (near points first); the refit is weighted
     res = ransac_align(key, src, tgt, w, num_iterations=iterations, threshold=threshold)
-    return res, jnp.sum(ok)
+    return res, jnp.sum(ok), src, tgt
+
+
+def _lifted_covariance(p: np.ndarray, intr, cfg: DenseRefinement) -> np.ndarray:
+    """Covariances ``(k, 3, 3)`` of keypoints lifted to 3-D, ``p = z K^-1 (u, v, 1)``: pixel
+    noise ``cfg.pixel_noise`` (px) on ``u, v`` and depth noise ``cfg.depth_noise z^2`` (m)."""
+    z = np.maximum(p[:, 2], 1e-6)
+    su = cfg.pixel_noise * z / intr.fx
+    sv = cfg.pixel_noise * z / intr.fy
+    sz = cfg.depth_noise * z ** 2
+    ray = p / z[:, None]  # dp/dz
+    cov = sz[:, None, None] ** 2 * ray[:, :, None] * ray[:, None, :]
+    cov[:, 0, 0] += su ** 2
+    cov[:, 1, 1] += sv ** 2
+    return cov
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
-def _dense_refine(depth_a, depth_b, k4, q0, t0, schedules, cfg: DenseRefinement):
-    """Coarse-to-fine projective point-to-plane ICP of ``a``'s depth onto ``b``'s."""
+def _dense_refine(depth_a, depth_b, k4, q0, t0, schedules, pairs, cfg: DenseRefinement):
+    """Coarse-to-fine projective point-to-plane ICP of ``a``'s depth onto ``b``'s (with the
+    fixed feature pairs ``pairs = (src, tgt, inverse variance)`` in every level, or None)."""
     def clip(d):
         return jnp.where(jnp.isfinite(d) & (d > 0) & (d <= cfg.max_depth), d, 0)
 
@@ -910,7 +930,7 @@ def _dense_refine(depth_a, depth_b, k4, q0, t0, schedules, cfg: DenseRefinement)
         res = icp_projective(sp, tp, tn, kt, source_valid=sp[:, 2] > 0, initial_rotation=q,
                              initial_translation=t, num_iterations=int(it),
                              max_correspondence_distance=sched, loss=cfg.loss,
-                             loss_scale=cfg.loss_scale)
+                             loss_scale=cfg.loss_scale, point_pairs=pairs)
         # a failed level (too few correspondences, degenerate) returns its initial guess
         q, t = res.rotation, res.translation
     return q, t, res.status, res.num_inliers, res.rmse
@@ -951,11 +971,13 @@ def rgbd_relative_pose(
         A :class:`RelativePose` mapping points of ``a`` into ``b``.
     """
     if isinstance(refine, str):
-        if refine != "icp":
-            raise ValueError(f"refine must be None, 'icp' or a DenseRefinement, got {refine!r}")
-        refine = DenseRefinement()
+        if refine not in ("icp", "joint"):
+            raise ValueError("refine must be None, 'icp', 'joint' or a DenseRefinement, got "
+                             f"{refine!r}")
+        refine = DenseRefinement(feature_weight=1.0 if refine == "joint" else None)
     elif refine is not None and not isinstance(refine, DenseRefinement):
-        raise ValueError(f"refine must be None, 'icp' or a DenseRefinement, got {refine!r}")
+        raise ValueError("refine must be None, 'icp', 'joint' or a DenseRefinement, got "
+                         f"{refine!r}")
     kw = {"method": method, "max_keypoints": max_keypoints, "fast_threshold": fast_threshold}
     ka = detect_keypoints(frame_a.color, box_a, **kw)
     kb = detect_keypoints(frame_b.color, box_b, **kw)
@@ -963,7 +985,8 @@ def rgbd_relative_pose(
           "edge_rel": edge_rel}
     pa, oka = lift_keypoints(ka.uv, frame_a.depth, frame_a.intrinsics, ka.valid, **lk)
     pb, okb = lift_keypoints(kb.uv, frame_b.depth, frame_b.intrinsics, kb.valid, **lk)
-    res, n = _pair_core(jax.random.PRNGKey(seed), pa, oka, jnp.asarray(ka.descriptors), pb, okb,
+    res, n, fsrc, ftgt = _pair_core(
+        jax.random.PRNGKey(seed), pa, oka, jnp.asarray(ka.descriptors), pb, okb,
                         jnp.asarray(kb.descriptors), ratio, ransac_threshold,
                         "hamming" if method == "orb" else "l2", int(ransac_iterations),
                         float(depth_power), min(int(max_matches), int(max_keypoints)))
@@ -981,9 +1004,19 @@ def rgbd_relative_pose(
     k4 = jnp.asarray([intr.fx, intr.fy, intr.cx, intr.cy], dt)
     schedules = tuple(jnp.asarray(np.geomspace(d0, d1, int(it)), dt)
                       for (d0, d1), it in zip(refine.distances, refine.iterations))
+    pairs = None
+    if refine.feature_weight is not None:
+        # the RANSAC inliers, weighted by the inverse covariance of their 3-D difference
+        fsrc, ftgt = np.asarray(fsrc, np.float64), np.asarray(ftgt, np.float64)
+        cov = (_np_qmatrix(q) @ _lifted_covariance(fsrc, intr, refine) @ _np_qmatrix(q).T
+               + _lifted_covariance(ftgt, intr, refine))
+        use = np.asarray(res.inlier_mask) & (fsrc[:, 2] > 0) & (ftgt[:, 2] > 0)
+        cov = np.where(use[:, None, None], cov, np.eye(3))
+        info = np.where(use[:, None, None], refine.feature_weight * np.linalg.inv(cov), 0)
+        pairs = (jnp.asarray(fsrc, dt), jnp.asarray(ftgt, dt), jnp.asarray(info, dt))
     rq, rt, status, inl, rmse = jax.device_get(_dense_refine(
         jnp.asarray(frame_a.depth, dt), jnp.asarray(frame_b.depth, dt), k4,
-        jnp.asarray(q, dt), jnp.asarray(t, dt), schedules, refine))
+        jnp.asarray(q, dt), jnp.asarray(t, dt), schedules, pairs, refine))
     good = int(status) in (IcpStatus.OK, IcpStatus.NOT_CONVERGED)
     if good:
         q, t = _canon(np.asarray(rq, np.float64)), np.asarray(rt, np.float64)

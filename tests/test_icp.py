@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from phjax import align
 from phjax.icp import (
     DEGENERATE,
     NOT_CONVERGED,
@@ -292,6 +293,104 @@ def test_robust_loss_rejects_outliers():
                   initial_translation=res["cauchy"].translation)
     ang, dt = pose_errors(near, Q1, T1)
     assert int(near.status) == OK and ang < 1e-6 and dt < 1e-6
+
+
+# ---------------------------------------------------------------- fixed point pairs (sparse)
+def pair_problem(q, t, n=40, noise=0.0, seed=3):
+    """``n`` points near the surface mapped by ``(q, t)`` (+ noise), and positive weights."""
+    rng = np.random.default_rng(seed)
+    s = CENTRE + rng.normal(0, 0.1, (n, 3))
+    y = Rotation.from_quat(np.roll(q, -1)).apply(s) + t + rng.normal(0, noise, (n, 3))
+    return s, y, rng.uniform(0.2, 2.0, n) * 1e4
+
+
+def test_point_pairs_alone_are_the_weighted_kabsch_problem():
+    # no dense correspondence (every source point masked): the objective is sum w |R s + t - y|^2
+    s, y, w = pair_problem(Q1, T1, noise=0.01)
+    w[::7] = 0  # unused pairs
+    ref = align(s, y, w)
+    none = np.zeros(len(SOURCE1), bool)
+    for res in (run_nn(SOURCE1, source_valid=none, point_pairs=(s, y, w), tolerance=1e-12),
+                run_proj(SOURCE1, source_valid=none, point_pairs=(s, y, w), tolerance=1e-12)):
+        assert int(res.status) == OK and int(res.num_inliers) == 0
+        np.testing.assert_allclose(res.rotation, ref.quaternion, atol=1e-10)
+        np.testing.assert_allclose(res.translation, ref.translation, atol=1e-10)
+    # the pairs alone must number at least min_correspondences
+    few = run_nn(SOURCE1, source_valid=none, point_pairs=(s[:5], y[:5], w[:5]))
+    assert int(few.status) == TOO_FEW_CORRESPONDENCES
+
+
+def test_point_pairs_join_the_dense_objective():
+    # dense data consistent with (Q1, T1), pairs with a motion 1 degree / 1 cm away
+    extra = Rotation.from_rotvec(np.deg2rad(1.0) * np.array([0.0, 0.6, 0.8]))
+    q2 = np.roll((extra * Rotation.from_quat(np.roll(Q1, -1))).as_quat(), 1)
+    t2 = T1 + np.array([0.01, 0, 0])
+    s, y, w = pair_problem(q2, t2)
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(len(s), 3, 3))
+    info = w[:, None, None] * (np.einsum("kij,klj->kil", a, a) + 0.1 * np.eye(3))  # anisotropic
+    sigma = 2e-3
+    errs = []
+    for scale in (1e-9, 1.0, 1e9):
+        res = run_nn(SOURCE1, point_pairs=(s, y, info), pair_weight=scale, dense_sigma=sigma,
+                     tolerance=1e-12,
+                     num_iterations=40, max_correspondence_distance=0.05)
+        assert int(res.status) == OK
+        errs.append((pose_errors(res, Q1, T1), pose_errors(res, q2, t2)))
+        if scale == 1.0:
+            # stationary point of the joint cost with the final correspondences (independent
+            # solver: scipy least squares over a rotation vector and a translation)
+            from scipy.optimize import least_squares
+
+            tree = cKDTree(TARGET.reshape(-1, 3))
+            rot0 = Rotation.from_quat(np.roll(np.asarray(res.rotation), -1))
+            _, idx = tree.query(rot0.apply(SOURCE1) + np.asarray(res.translation))
+            yt, nt = TARGET.reshape(-1, 3)[idx], NORMALS.reshape(-1, 3)[idx]
+
+            def resid(p):
+                rot = Rotation.from_rotvec(p[:3]) * rot0
+                x = rot.apply(SOURCE1) + p[3:]
+                xp = rot.apply(s) + p[3:]
+                chol = np.linalg.cholesky(info)  # e^T info e = |chol^T e|^2
+                return np.concatenate([np.sum(nt * (x - yt), -1) / sigma,
+                                       np.einsum("kij,ki->kj", chol, xp - y).ravel()])
+
+            x0 = np.concatenate([np.zeros(3), np.asarray(res.translation)])
+            sol = least_squares(resid, x0, xtol=1e-15, ftol=1e-15, gtol=1e-15)
+            assert np.linalg.norm(sol.x[:3]) < 1e-9 and np.linalg.norm(sol.x[3:] - x0[3:]) < 1e-9
+    # tiny pair weights: the dense motion; huge: the pairs' motion; in between: neither
+    (d_lo, p_lo), (d_mid, p_mid), (d_hi, p_hi) = errs
+    assert d_lo[0] < 1e-6 and d_lo[1] < 1e-6
+    assert p_hi[0] < 1e-6 and p_hi[1] < 1e-6
+    assert min(d_mid[1], p_mid[1]) > 1e-4
+    # a robust pair loss on the Mahalanobis distance drops pairs far off
+    s, y, w = pair_problem(Q1, T1)
+    w = w * 100  # sigma 0.7-2.2 mm
+    bad = np.arange(len(s)) % 5 == 0
+    y_bad = y + bad[:, None] * np.array([0.0, 0.05, 0.0])  # 5 cm off
+    none = np.zeros(len(SOURCE1), bool)
+    q0, t0 = np.roll(Rotation.from_rotvec([0.0, 0.002, 0.0]).as_quat(), 1), T1 + 5e-4
+    q0 = np.roll((Rotation.from_quat(np.roll(q0, -1)) * Rotation.from_quat(np.roll(Q1, -1)))
+                 .as_quat(), 1)
+    kw = dict(source_valid=none, num_iterations=30, tolerance=1e-12, initial_rotation=q0,
+              initial_translation=t0)
+    tgt, nrm = TARGET.reshape(-1, 3), NORMALS.reshape(-1, 3)
+    res = icp_point_to_plane(SOURCE1, tgt, nrm, point_pairs=(s, y_bad, w), pair_loss="tukey",
+                             pair_loss_scale=4.685, **kw)
+    assert int(res.status) == OK
+    ang, dt = pose_errors(res, Q1, T1)
+    assert ang < 1e-9 and dt < 1e-9
+    plain = icp_point_to_plane(SOURCE1, tgt, nrm, point_pairs=(s, y_bad, w), **kw)
+    assert pose_errors(plain, Q1, T1)[1] > 1e-3
+    with pytest.raises(ValueError, match="loss"):
+        icp_point_to_plane(SOURCE1, TARGET.reshape(-1, 3), NORMALS.reshape(-1, 3),
+                           point_pairs=(s, y, w), pair_loss="l1")
+    with pytest.raises(ValueError, match="dense_sigma"):
+        icp_point_to_plane(SOURCE1, TARGET.reshape(-1, 3), NORMALS.reshape(-1, 3),
+                           dense_sigma=0.01)
+    with pytest.raises(ValueError, match="point_pairs"):
+        icp_point_to_plane(SOURCE1, TARGET.reshape(-1, 3), NORMALS.reshape(-1, 3),
+                           point_pairs=(s, y, w[:-1]))
 
 
 # -------------------------------------------------------------- point-to-plane vs point-to-point
