@@ -1,7 +1,9 @@
-"""Relative camera poses on the slambook2 chapter-5 RGB-D frames: feature RANSAC with and
-without the dense ICP refinement (``rgbd_relative_pose(refine="icp")``), against the given
-(approximate) poses, per RANSAC seed; optionally ``cv2.Odometry`` (OpenCV 5, DEPTH / RGB /
-RGB_DEPTH) as an independent reference.
+"""Relative camera poses on the slambook2 chapter-5 RGB-D frames: feature RANSAC alone, with
+the dense ICP refinement (``rgbd_relative_pose(refine="icp")``) and with the joint dense +
+feature refinement (``refine="joint"``, the RANSAC inliers as point pairs weighted by their
+noise model), against the given (approximate) poses, per RANSAC seed; a sensitivity table over
+the joint refinement's relative feature weight; optionally ``cv2.Odometry`` (OpenCV 5,
+DEPTH / RGB / RGB_DEPTH) as an independent reference.
 
 ``cv2.Odometry.compute`` takes no initial guess and fails on these wide baselines (0.2-0.7 m,
 up to 25 degrees) when started from the identity, so frame ``a`` (depth + grey) is first
@@ -9,7 +11,7 @@ forward-warped into ``b``'s view with the initial motion (z-buffered 2x2 splats)
 odometry's correction is composed with that motion.
 
     python experiments/slambook_refinement.py            # seeds 0..7, with cv2.Odometry
-    python experiments/slambook_refinement.py --seeds 2 --no-cv2
+    python experiments/slambook_refinement.py --seeds 2 --no-cv2 --weights 1 100
 
 Writes ``results/slambook_refinement/summary.md`` (and prints it).
 """
@@ -92,6 +94,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=8, help="RANSAC seeds 0..N-1 (default 8)")
     ap.add_argument("--no-cv2", action="store_true", help="skip the cv2.Odometry reference")
+    ap.add_argument("--weights", type=float, nargs="*", default=[1, 10, 100, 1000, 1e6],
+                    help="feature weights of the sensitivity table (none: no table)")
     ap.add_argument("--out", default="results/slambook_refinement")
     args = ap.parse_args(argv)
     base = shared_data_dir()
@@ -100,13 +104,15 @@ def main(argv=None) -> int:
     seq = R.open_rgbd(base / "rgbd_frames_slambook2_ch5")
     frames = [seq[i] for i in range(5)]
     seeds = range(args.seeds)
-    H.rgbd_relative_pose(frames[3], frames[4], refine="icp")  # compile outside the timings
+    for refine in ("icp", "joint"):  # compile outside the timings
+        H.rgbd_relative_pose(frames[3], frames[4], refine=refine)
     head = "| pair | stage | " + " | ".join(f"seed {s}" for s in seeds) + " | time / pair |"
     lines = ["# slambook2 ch5: relative camera pose errors (deg / cm) against pose.txt", "",
              head, "|" + "---|" * (len(seeds) + 3)]
     refined = {}
     for i in range(4):
-        for stage, refine in (("RANSAC", None), ("RANSAC + ICP", "icp")):
+        for stage, refine in (("RANSAC", None), ("RANSAC + ICP", "icp"),
+                              ("RANSAC + joint", "joint")):
             cells, times = [], []
             for s in seeds:
                 t0 = time.perf_counter()
@@ -114,11 +120,29 @@ def main(argv=None) -> int:
                 times.append(time.perf_counter() - t0)
                 e = _errors(seq, i, rel.rotation, rel.translation)
                 cells.append(f"{e[0]:.2f} / {e[1]:.1f}")
-                if refine:
+                if refine == "icp":
                     refined[i, s] = rel
             lines.append(f"| {i + 1}->{i + 2} | {stage} | " + " | ".join(cells)
                          + f" | {np.median(times):.2f} s |")
             print(lines[-1], flush=True)
+    if args.weights:
+        lines += ["", "Joint refinement, sensitivity to the relative feature weight "
+                  "(`DenseRefinement(feature_weight=w)`; 1 = noise models alone):", "", head,
+                  "|" + "---|" * (len(seeds) + 3)]
+        for wgt in args.weights:
+            cfg = H.DenseRefinement(feature_weight=wgt)
+            H.rgbd_relative_pose(frames[3], frames[4], refine=cfg)  # compile
+            for i in range(4):
+                cells, times = [], []
+                for s in seeds:
+                    t0 = time.perf_counter()
+                    rel = H.rgbd_relative_pose(frames[i], frames[i + 1], seed=s, refine=cfg)
+                    times.append(time.perf_counter() - t0)
+                    e = _errors(seq, i, rel.rotation, rel.translation)
+                    cells.append(f"{e[0]:.2f} / {e[1]:.1f}")
+                lines.append(f"| {i + 1}->{i + 2} | w = {wgt:g} | " + " | ".join(cells)
+                             + f" | {np.median(times):.2f} s |")
+                print(lines[-1], flush=True)
     if not args.no_cv2:
         lines += ["", "cv2.Odometry started from the refined pose of each seed:", "", head,
                   "|" + "---|" * (len(seeds) + 3)]

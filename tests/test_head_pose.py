@@ -299,7 +299,8 @@ def _slambook_pair_errors(seq, i, rel):
 
 
 def test_slambook_dense_refinement():
-    """refine="icp": seed-independent on all four pairs; 1-2, 2-3, 4-5 within 3 deg / 5 cm.
+    """refine="icp": seed-independent on all four pairs; 1-2, 2-3, 4-5 within 3 deg / 5 cm;
+    refine="joint" (seed 0): the same, 3-4 closer to the given pose than "icp" but not in 5 cm.
 
     On 3 -> 4 the depth-consistent motion lies about 7.5 cm from the given (approximate) pose;
     cv2.Odometry's depth ICP lands there too (7.2 cm), so that pair is held to a looser bound.
@@ -318,10 +319,21 @@ def test_slambook_dense_refinement():
         for rel in rels[1:]:  # the same answer whatever the RANSAC seed
             assert _angle_deg(rel.quaternion, rels[0].quaternion) < 0.2
             assert np.linalg.norm(rel.translation - rels[0].translation) < 0.005
+        # joint dense + feature refinement (noise-model weights): the RANSAC inliers pull 3 -> 4
+        # towards the given pose (6.1-6.5 cm for seeds 0-7 instead of 7.3-7.5), not within 5 cm
+        joint = H.rgbd_relative_pose(seq[i], seq[i + 1], seed=0, refine="joint")
+        assert joint.status == 0 and joint.refined and joint.icp_status in (0, 3), (i, joint)
+        rot, trans = _slambook_pair_errors(seq, i, joint)
+        assert rot < 3.0, (i, rot)
+        assert trans < (0.07 if i == 2 else 0.05), (i, trans)
+        if i == 2:
+            assert trans < _slambook_pair_errors(seq, i, rels[0])[1] - 0.005
     with pytest.raises(ValueError, match="refine"):
         H.rgbd_relative_pose(seq[0], seq[1], refine="gicp")
     with pytest.raises(ValueError, match="level"):
         H.DenseRefinement(iterations=(10,))
+    with pytest.raises(ValueError, match="feature_weight"):
+        H.DenseRefinement(feature_weight=-1.0)
 
 
 # ----------------------------------------------------------------------------------- CLI
