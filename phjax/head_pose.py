@@ -866,6 +866,17 @@ class DenseRefinement:
     2012). The dense residuals are weighted by ``1 / sigma^2``, ``sigma`` their IRLS scale
     estimate, so ``feature_weight = 1`` weighs both terms by their noise models alone
     (treating the dense residuals as independent); larger values trust the features more.
+
+    ``feature_residual="pixel"`` uses 2-D reprojection residuals instead (``pixel_pairs`` of
+    :func:`phjax.icp.icp_projective`): ``a``'s lifted keypoint, moved by the motion and
+    projected into ``b``, against the matched keypoint's pixel there, with the covariance
+    ``pixel_noise^2 I`` plus ``a``'s lifted covariance propagated through the projection (at
+    the RANSAC motion). It relies on ``b``'s accurate pixel position instead of its noisy far
+    depth. ``feature_matches="all"`` passes every descriptor match (ratio test + mutual
+    check), not only the RANSAC inliers, with a Tukey loss of scale ``feature_loss_scale``
+    (standard deviations) that is widened to the dense correspondence distance of the
+    current iteration (``pair_gate`` / ``pixel_gate``): matches are re-selected every
+    iteration as the schedule shrinks, so a wrong RANSAC consensus is not locked in.
     """
 
     levels: tuple[tuple[int, int], ...] = ((4, 8), (2, 4), (1, 2))
@@ -878,8 +889,17 @@ class DenseRefinement:
     feature_weight: float | None = None
     depth_noise: float = 1.425e-3
     pixel_noise: float = 1.0
+    feature_residual: str = "point"
+    feature_matches: str = "inliers"
+    feature_loss_scale: float = 3.0
 
     def __post_init__(self):
+        if self.feature_residual not in ("point", "pixel"):
+            raise ValueError("feature_residual must be 'point' or 'pixel', got "
+                             f"{self.feature_residual!r}")
+        if self.feature_matches not in ("inliers", "all"):
+            raise ValueError("feature_matches must be 'inliers' or 'all', got "
+                             f"{self.feature_matches!r}")
         if self.feature_weight is not None and not self.feature_weight >= 0:
             raise ValueError(f"feature_weight must be None or >= 0, got {self.feature_weight}")
         if not (len(self.levels) == len(self.iterations) == len(self.distances) >= 1):
@@ -924,7 +944,17 @@ def _lifted_covariance(p: np.ndarray, intr, cfg: DenseRefinement) -> np.ndarray:
 @functools.partial(jax.jit, static_argnames=("cfg",))
 def _dense_refine(depth_a, depth_b, k4, q0, t0, schedules, pairs, cfg: DenseRefinement):
     """Coarse-to-fine projective point-to-plane ICP of ``a``'s depth onto ``b``'s (with the
-    fixed feature pairs ``pairs = (src, tgt, inverse variance)`` in every level, or None)."""
+    fixed feature pairs in every level, or None: ``pairs = (src, tgt, information)``, ``tgt``
+    3-D points or pixels of ``b`` as ``cfg.feature_residual``)."""
+    robust = cfg.feature_matches == "all"
+    sparse = {}
+    if pairs is not None and cfg.feature_residual == "point":
+        sparse = {"point_pairs": pairs, "pair_loss": "tukey" if robust else "l2",
+                  "pair_loss_scale": cfg.feature_loss_scale, "pair_gate": robust}
+    elif pairs is not None:
+        sparse = {"pixel_pairs": pairs, "pixel_intrinsics": k4,
+                  "pixel_loss": "tukey" if robust else "l2",
+                  "pixel_loss_scale": cfg.feature_loss_scale, "pixel_gate": robust}
     def clip(d):
         return jnp.where(jnp.isfinite(d) & (d > 0) & (d <= cfg.max_depth), d, 0)
 
@@ -939,7 +969,7 @@ def _dense_refine(depth_a, depth_b, k4, q0, t0, schedules, pairs, cfg: DenseRefi
         res = icp_projective(sp, tp, tn, kt, source_valid=sp[:, 2] > 0, initial_rotation=q,
                              initial_translation=t, num_iterations=int(it),
                              max_correspondence_distance=sched, loss=cfg.loss,
-                             loss_scale=cfg.loss_scale, point_pairs=pairs)
+                             loss_scale=cfg.loss_scale, **sparse)
         # a failed level (too few correspondences, degenerate) returns its initial guess
         q, t = res.rotation, res.translation
     return q, t, res.status, res.num_inliers, res.rmse
@@ -1023,14 +1053,34 @@ def rgbd_relative_pose(
                       for (d0, d1), it in zip(refine.distances, refine.iterations))
     pairs = None
     if refine.feature_weight is not None:
-        # the RANSAC inliers, weighted by the inverse covariance of their 3-D difference
+        # the RANSAC inliers (or all matches), weighted by the inverse covariance of their
+        # 3-D difference or of their reprojection error in b
         fsrc, ftgt = np.asarray(fsrc, np.float64), np.asarray(ftgt, np.float64)
-        cov = (_np_qmatrix(q) @ _lifted_covariance(fsrc, intr, refine) @ _np_qmatrix(q).T
-               + _lifted_covariance(ftgt, intr, refine))
-        use = np.asarray(res.inlier_mask) & (fsrc[:, 2] > 0) & (ftgt[:, 2] > 0)
-        cov = np.where(use[:, None, None], cov, np.eye(3))
+        use = (fsrc[:, 2] > 0) & (ftgt[:, 2] > 0) & (np.arange(len(fsrc)) < int(n))
+        if refine.feature_matches == "inliers":
+            use &= np.asarray(res.inlier_mask)
+        rot = _np_qmatrix(q)
+        cov_a = rot @ _lifted_covariance(fsrc, intr, refine) @ rot.T
+        if refine.feature_residual == "point":
+            cov = cov_a + _lifted_covariance(ftgt, intr, refine)
+            eye, tgt = np.eye(3), ftgt
+        else:  # pixels of b: a's covariance through the projection + b's pixel noise
+            x = fsrc @ rot.T + t
+            z = np.maximum(x[:, 2], 1e-6)
+            jac = np.zeros((len(x), 2, 3))
+            jac[:, 0, 0] = intr.fx / z
+            jac[:, 0, 2] = -intr.fx * x[:, 0] / z ** 2
+            jac[:, 1, 1] = intr.fy / z
+            jac[:, 1, 2] = -intr.fy * x[:, 1] / z ** 2
+            eye = np.eye(2)
+            cov = jac @ cov_a @ jac.transpose(0, 2, 1) + refine.pixel_noise ** 2 * eye
+            zb = np.maximum(ftgt[:, 2], 1e-6)  # b's keypoint pixels (exact: p = z K^-1 uv1)
+            tgt = np.stack([intr.fx * ftgt[:, 0] / zb + intr.cx,
+                            intr.fy * ftgt[:, 1] / zb + intr.cy], -1)
+        use &= np.isfinite(cov).all(axis=(1, 2))
+        cov = np.where(use[:, None, None], cov, eye)
         info = np.where(use[:, None, None], refine.feature_weight * np.linalg.inv(cov), 0)
-        pairs = (jnp.asarray(fsrc, dt), jnp.asarray(ftgt, dt), jnp.asarray(info, dt))
+        pairs = (jnp.asarray(fsrc, dt), jnp.asarray(tgt, dt), jnp.asarray(info, dt))
     rq, rt, status, inl, rmse = jax.device_get(_dense_refine(
         jnp.asarray(frame_a.depth, dt), jnp.asarray(frame_b.depth, dt), k4,
         jnp.asarray(q, dt), jnp.asarray(t, dt), schedules, pairs, refine))

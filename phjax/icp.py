@@ -62,6 +62,21 @@ by their noise. Without dense correspondences the objective is the weighted poin
 (Kabsch) problem of :func:`phjax.align`. Without ``point_pairs`` the iteration is the plain
 ICP above (weights need no scale: the step does not depend on it).
 
+Reprojection pairs (sparse 2-D + dense)
+---------------------------------------
+``pixel_pairs=(s_k, uv_k, W_k)`` adds fixed 3-D -> pixel correspondences instead (or as well):
+a source point ``s_k`` (e.g. a keypoint of the source frame lifted through its depth) and the
+pixel ``uv_k`` where its match was observed in the target camera. The residual is the
+reprojection error ``e_k = pi(R s_k + t) - uv_k`` (px) with information ``W_k`` (1/px^2), the
+sparse term of RGB-D odometry: it uses the accurate lateral position of the match in the target
+image and no target depth. Row ``m`` of its Jacobian is a point-to-plane row with the
+(non-unit) "normal" ``g_m = d pi_m / d x``, so it joins the same normal equations. Without
+dense correspondences the objective is a weighted PnP problem (as ``cv2.solvePnP``,
+``SOLVEPNP_ITERATIVE``; unlike PnP, a good initial guess is needed). A robust ``pixel_loss``
+with ``pixel_gate=True`` re-selects the matches every iteration: the scale of the loss
+follows the dense correspondence distance (projected at the point's depth), so all putative
+matches can be passed and a wrong initial consensus is not locked in.
+
 Status codes (:class:`IcpStatus`)
 ---------------------------------
 * ``OK`` (0): converged (last step shorter than ``tolerance``).
@@ -343,8 +358,9 @@ def _residuals(x, assoc: _Assoc):
 
 def _run_icp(associate, src, src_ok, q0, t0, dist, *, num_iterations, loss, loss_scale,
              tolerance, degenerate_rtol, damping, min_correspondences, pairs=None,
-             dense_sigma=None, pair_weight=1.0, pair_loss="l2", pair_loss_scale=3.0
-             ) -> IcpResult:
+             dense_sigma=None, pair_weight=1.0, pair_loss="l2", pair_loss_scale=3.0,
+             pair_gate=False, pix=None, pixel_weight=1.0, pixel_loss="l2",
+             pixel_loss_scale=3.0, pixel_gate=False) -> IcpResult:
     """Gauss-Newton loop shared by both association strategies (single problem).
 
     ``pairs = (ps, pt, pinfo)``: fixed point-to-point correspondences (already sanitised,
@@ -353,6 +369,10 @@ def _run_icp(associate, src, src_ok, q0, t0, dist, *, num_iterations, loss, loss
     of their Mahalanobis distance);
     the dense residuals are then weighted by ``robust weight / sigma^2`` with ``sigma =
     dense_sigma`` or, when ``None``, the IRLS scale estimate of the current iteration.
+    ``pix = (ps, uv, pinfo, (fx, fy, cx, cy))``: fixed 3-D -> pixel correspondences whose
+    reprojection residuals ``pi(R ps + t) - uv`` (px, information ``pinfo`` (k, 2, 2) in
+    1/px^2) join likewise. ``*_gate``: the robust scale of a pair is at least the current
+    correspondence distance ``dist[i]`` in the pair's noise units (see the public docstrings).
     """
     dtype = src.dtype
     eye = jnp.eye(3, dtype=dtype)
@@ -365,6 +385,15 @@ def _run_icp(associate, src, src_ok, q0, t0, dist, *, num_iterations, loss, loss
         r = _residuals(x, a)
         w = jnp.where(ok, _robust_weight(r, loss, loss_scale), 0)
         count = jnp.sum(w > 0, dtype=jnp.int32)  # (Tukey's loss gives outliers weight 0)
+        sparse = pairs is not None or pix is not None
+        if sparse:
+            # dense residuals in the pairs' units: weight / sigma^2 (sigma^2 estimated as the
+            # robust-weighted mean square residual unless given)
+            var = (safe_div(jnp.sum(w * r * r), jnp.sum(w)) if dense_sigma is None
+                   else jnp.asarray(dense_sigma, dtype) ** 2)
+            w = jnp.where(var > 0, safe_div(w, var), 0)
+            wsum = jnp.sum(w)
+            wx = jnp.einsum("n,ni->i", w, x)
         if pairs is not None:
             ps, pt, pinfo = pairs  # pinfo: (k, 3, 3) information matrices
             xp = quat_rotate(q, ps) + t
@@ -372,17 +401,44 @@ def _run_icp(associate, src, src_ok, q0, t0, dist, *, num_iterations, loss, loss
             # robust weight of the Mahalanobis distance, then the relative weight
             maha = safe_sqrt(jnp.einsum("ki,kij,kj->k", ep, pinfo, ep))
             used = jnp.trace(pinfo, axis1=-2, axis2=-1) > 0
-            rho = jnp.where(used, _robust_weight(maha, pair_loss, pair_loss_scale), 0)
+            sc = jnp.asarray(pair_loss_scale, dtype)
+            if pair_gate:  # the correspondence distance in noise units
+                sc = jnp.maximum(sc, dist[i] * safe_sqrt(jnp.trace(pinfo, axis1=-2,
+                                                                   axis2=-1) / 3))
+            rho = jnp.where(used, _robust_weight(maha, pair_loss, sc), 0)
             pinfo = (pair_weight * rho)[:, None, None] * pinfo
             pw = jnp.trace(pinfo, axis1=-2, axis2=-1) / 3  # scalar weights for c and L
-            # dense residuals in the pairs' units: weight / sigma^2 (sigma^2 estimated as the
-            # robust-weighted mean square residual unless given)
-            var = (safe_div(jnp.sum(w * r * r), jnp.sum(w)) if dense_sigma is None
-                   else jnp.asarray(dense_sigma, dtype) ** 2)
-            w = jnp.where(var > 0, safe_div(w, var), 0)
             count = count + jnp.sum(pw > 0, dtype=jnp.int32)
-            wsum = jnp.sum(w) + jnp.sum(pw)
-            c = safe_div(jnp.einsum("n,ni->i", w, x) + jnp.einsum("k,ki->i", pw, xp), wsum)
+            wsum = wsum + jnp.sum(pw)
+            wx = wx + jnp.einsum("k,ki->i", pw, xp)
+        if pix is not None:
+            qs, quv, qinfo, (pfx, pfy, pcx, pcy) = pix  # qinfo: (k, 2, 2), 1/px^2
+            xq = quat_rotate(q, qs) + t
+            zq = xq[:, 2]
+            front = zq > 1e-6
+            iz = jnp.where(front, 1 / jnp.where(front, zq, 1), 0)
+            eq = jnp.stack([pfx * xq[:, 0] * iz + pcx, pfy * xq[:, 1] * iz + pcy], -1) - quv
+            mq = safe_sqrt(jnp.einsum("ki,kij,kj->k", eq, qinfo, eq))
+            used = front & (jnp.trace(qinfo, axis1=-2, axis2=-1) > 0)
+            sq = jnp.trace(qinfo, axis1=-2, axis2=-1) / 2  # scalar information, 1/px^2
+            sc = jnp.asarray(pixel_loss_scale, dtype)
+            if pixel_gate:  # the correspondence distance seen at the point's depth, noise units
+                sc = jnp.maximum(sc, dist[i] * 0.5 * (pfx + pfy) * iz * safe_sqrt(sq))
+            rho = jnp.where(used, _robust_weight(mq, pixel_loss, sc), 0)
+            qinfo = (pixel_weight * rho)[:, None, None] * qinfo
+            # d(u, v)/dx: rows g_u, g_v of the projection Jacobian (1/m -> px)
+            gq = jnp.stack([
+                jnp.stack([pfx * iz, jnp.zeros_like(iz), -pfx * xq[:, 0] * iz * iz], -1),
+                jnp.stack([jnp.zeros_like(iz), pfy * iz, -pfy * xq[:, 1] * iz * iz], -1)],
+                axis=1)  # (k, 2, 3)
+            # scalar metric weights (1/m^2) for c and L: information times (f / z)^2
+            qw = (jnp.trace(qinfo, axis1=-2, axis2=-1) / 2
+                  * (0.5 * (pfx + pfy) * iz) ** 2)
+            count = count + jnp.sum(qw > 0, dtype=jnp.int32)
+            wsum = wsum + jnp.sum(qw)
+            wx = wx + jnp.einsum("k,ki->i", qw, xq)
+        if sparse:
+            c = safe_div(wx, wsum)
         else:
             wsum = jnp.sum(w)
             c = safe_div(jnp.einsum("n,ni->i", w, x), wsum)
@@ -391,6 +447,9 @@ def _run_icp(associate, src, src_ok, q0, t0, dist, *, num_iterations, loss, loss
         if pairs is not None:
             xpc = xp - c
             msq = msq + jnp.einsum("k,ki,ki->", pw, xpc, xpc)
+        if pix is not None:
+            xqc = xq - c
+            msq = msq + jnp.einsum("k,ki,ki->", qw, xqc, xqc)
         ell = safe_sqrt(safe_div(msq, wsum))
         ell = jnp.where(ell > 0, ell, 1)
         jac = jnp.concatenate([jnp.cross(xc, a.nrm) / ell, a.nrm], axis=-1)  # (n, 6)
@@ -405,6 +464,11 @@ def _run_icp(associate, src, src_ok, q0, t0, dist, *, num_iterations, loss, loss
                  jnp.broadcast_to(eye, xpc.shape[:1] + (3, 3))], axis=-1)  # (k, 3, 6)
             amat = amat + jnp.einsum("kji,kjm,kml->il", jp, pinfo, jp)
             bvec = bvec - jnp.einsum("kji,kjm,km->i", jp, pinfo, ep)
+        if pix is not None:
+            # a reprojection residual row m is a point-to-plane row with "normal" g_m
+            jq = jnp.concatenate([jnp.cross(xqc[:, None, :], gq) / ell, gq], axis=-1)  # (k,2,6)
+            amat = amat + jnp.einsum("kji,kjm,kml->il", jq, qinfo, jq)
+            bvec = bvec - jnp.einsum("kji,kjm,km->i", jq, qinfo, eq)
         lam, vec = jnp.linalg.eigh(amat)
         lam_max = lam[-1]
         cond = safe_div(lam[0], lam_max)
@@ -516,8 +580,6 @@ def _prepare_pairs(point_pairs, dense_sigma, dtype):
     """Sanitise ``point_pairs = (source, target, weights)``: non-finite rows get weight 0;
     scalar weights become information matrices ``w I``."""
     if point_pairs is None:
-        if dense_sigma is not None:
-            raise ValueError("dense_sigma is only used together with point_pairs")
         return None
     try:
         ps, pt, pw = (jnp.asarray(a) for a in point_pairs)
@@ -540,6 +602,49 @@ def _prepare_pairs(point_pairs, dense_sigma, dtype):
     ok = good & jnp.all(jnp.isfinite(ps), axis=-1) & jnp.all(jnp.isfinite(pt), axis=-1)
     return (jnp.where(ok[:, None], ps, 0), jnp.where(ok[:, None], pt, 0),
             jnp.where(ok[:, None, None], pw, 0))
+
+
+def _prepare_pixels(pixel_pairs, intrinsics, dtype):
+    """Sanitise ``pixel_pairs = (source, uv, weights)``: non-finite rows get weight 0; scalar
+    weights become information matrices ``w I`` (2x2)."""
+    if pixel_pairs is None:
+        return None
+    if intrinsics is None:
+        raise ValueError("pixel_pairs need pixel_intrinsics (the target camera's)")
+    try:
+        ps, uv, pw = (jnp.asarray(a) for a in pixel_pairs)
+    except (TypeError, ValueError):
+        raise ValueError("pixel_pairs must be a tuple (source, uv, weights)") from None
+    _check_points("pixel_pairs source", ps)
+    k = ps.shape[0]
+    if uv.shape != (k, 2) or pw.shape not in ((k,), (k, 2, 2)):
+        raise ValueError(
+            f"pixel_pairs need shapes (k, 3), (k, 2), (k,) or (k, 2, 2), got {tuple(ps.shape)}, "
+            f"{tuple(uv.shape)}, {tuple(pw.shape)}"
+        )
+    ps, uv, pw = ps.astype(dtype), uv.astype(dtype), pw.astype(dtype)
+    if pw.ndim == 1:
+        good = jnp.isfinite(pw) & (pw > 0)
+        pw = pw[:, None, None] * jnp.eye(2, dtype=dtype)
+    else:
+        pw = 0.5 * (pw + jnp.swapaxes(pw, -1, -2))
+        good = jnp.all(jnp.isfinite(pw), axis=(-2, -1)) & (jnp.trace(pw, axis1=-2, axis2=-1) > 0)
+    ok = good & jnp.all(jnp.isfinite(ps), axis=-1) & jnp.all(jnp.isfinite(uv), axis=-1)
+    return (jnp.where(ok[:, None], ps, 0), jnp.where(ok[:, None], uv, 0),
+            jnp.where(ok[:, None, None], pw, 0), _intrinsics(intrinsics, dtype))
+
+
+def _sparse_kwargs(point_pairs, dense_sigma, pair_weight, pair_loss, pair_loss_scale, pair_gate,
+                   pixel_pairs, pixel_intrinsics, pixel_weight, pixel_loss, pixel_loss_scale,
+                   pixel_gate, dtype) -> dict:
+    if point_pairs is None and pixel_pairs is None and dense_sigma is not None:
+        raise ValueError("dense_sigma is only used together with point_pairs or pixel_pairs")
+    return {"pairs": _prepare_pairs(point_pairs, dense_sigma, dtype), "dense_sigma": dense_sigma,
+            "pair_weight": pair_weight, "pair_loss": _check_loss(pair_loss),
+            "pair_loss_scale": pair_loss_scale, "pair_gate": bool(pair_gate),
+            "pix": _prepare_pixels(pixel_pairs, pixel_intrinsics, dtype),
+            "pixel_weight": pixel_weight, "pixel_loss": _check_loss(pixel_loss),
+            "pixel_loss_scale": pixel_loss_scale, "pixel_gate": bool(pixel_gate)}
 
 
 def icp_point_to_plane(
@@ -565,6 +670,13 @@ def icp_point_to_plane(
     pair_weight: float = 1.0,
     pair_loss: str = "l2",
     pair_loss_scale: float = 3.0,
+    pair_gate: bool = False,
+    pixel_pairs: tuple[ArrayLike, ArrayLike, ArrayLike] | None = None,
+    pixel_intrinsics: Any = None,
+    pixel_weight: float = 1.0,
+    pixel_loss: str = "l2",
+    pixel_loss_scale: float = 3.0,
+    pixel_gate: bool = False,
 ) -> IcpResult:
     """Point-to-plane ICP with brute-force nearest-neighbour correspondences.
 
@@ -614,6 +726,26 @@ def icp_point_to_plane(
             ``sqrt(e_k^T W_k e_k)`` (dimensionless; e.g. ``"tukey"`` with scale 3 drops pairs
             more than 3 standard deviations off), re-evaluated every iteration. Default
             ``"l2"``: every pair counts.
+        pair_gate: with a robust ``pair_loss``: the loss scale of pair ``k`` is at least the
+            current ``max_correspondence_distance`` in its noise units, ``d_i sqrt(tr W_k /
+            3)``, so a coarse-to-fine distance schedule shrinks the gate with the dense term's.
+        pixel_pairs: optional fixed 3-D -> pixel correspondences ``(source (k, 3), uv (k, 2),
+            weights)``: source points and their observed pixels ``(u, v)`` in the target
+            camera; the cost gains the reprojection terms ``sum_k e_k^T W_k e_k``, ``e_k =
+            pi(R source_k + t) - uv_k`` (px, ``pi`` the pinhole projection with
+            ``pixel_intrinsics``), the sparse term of RGB-D odometry (see "Reprojection
+            pairs" in the module docstring). ``weights``: inverse pixel variances (1/px^2)
+            ``(k,)`` or information matrices ``(k, 2, 2)``; non-finite rows, weights ``<= 0``
+            and points behind the camera are ignored.
+        pixel_intrinsics: the target camera's intrinsics for ``pixel_pairs`` (required here;
+            :func:`icp_projective` defaults to its ``intrinsics``).
+        pixel_weight, pixel_loss, pixel_loss_scale: as ``pair_weight``, ``pair_loss``,
+            ``pair_loss_scale`` for the reprojection residuals (Mahalanobis distance
+            ``sqrt(e_k^T W_k e_k)``, dimensionless).
+        pixel_gate: with a robust ``pixel_loss``: the loss scale of pair ``k`` is at least the
+            current ``max_correspondence_distance`` seen at the point's depth, ``d_i f / z_k
+            sqrt(tr W_k / 2)`` (``f = (fx + fy) / 2``): wide while the dense term is coarse,
+            ``pixel_loss_scale`` at the end, so that matches are re-selected every iteration.
 
     Returns:
         An :class:`IcpResult` mapping source into target coordinates.
@@ -687,9 +819,9 @@ def icp_point_to_plane(
         num_iterations=int(num_iterations), loss=loss, loss_scale=scale,
         tolerance=tolerance, degenerate_rtol=degenerate_rtol,
         damping=damping, min_correspondences=int(min_correspondences),
-        pairs=_prepare_pairs(point_pairs, dense_sigma, dtype), dense_sigma=dense_sigma,
-        pair_weight=pair_weight, pair_loss=_check_loss(pair_loss),
-        pair_loss_scale=pair_loss_scale,
+        **_sparse_kwargs(point_pairs, dense_sigma, pair_weight, pair_loss, pair_loss_scale,
+                         pair_gate, pixel_pairs, pixel_intrinsics, pixel_weight, pixel_loss,
+                         pixel_loss_scale, pixel_gate, dtype),
     )
 
 
@@ -716,6 +848,13 @@ def icp_projective(
     pair_weight: float = 1.0,
     pair_loss: str = "l2",
     pair_loss_scale: float = 3.0,
+    pair_gate: bool = False,
+    pixel_pairs: tuple[ArrayLike, ArrayLike, ArrayLike] | None = None,
+    pixel_intrinsics: Any = None,
+    pixel_weight: float = 1.0,
+    pixel_loss: str = "l2",
+    pixel_loss_scale: float = 3.0,
+    pixel_gate: bool = False,
 ) -> IcpResult:
     """Point-to-plane ICP with projective data association on an organised target.
 
@@ -786,8 +925,9 @@ def icp_projective(
         num_iterations=int(num_iterations), loss=loss, loss_scale=scale,
         tolerance=tolerance, degenerate_rtol=degenerate_rtol,
         damping=damping, min_correspondences=int(min_correspondences),
-        pairs=_prepare_pairs(point_pairs, dense_sigma, dtype), dense_sigma=dense_sigma,
-        pair_weight=pair_weight, pair_loss=_check_loss(pair_loss),
-        pair_loss_scale=pair_loss_scale,
+        **_sparse_kwargs(point_pairs, dense_sigma, pair_weight, pair_loss, pair_loss_scale,
+                         pair_gate, pixel_pairs,
+                         intrinsics if pixel_intrinsics is None else pixel_intrinsics,
+                         pixel_weight, pixel_loss, pixel_loss_scale, pixel_gate, dtype),
     )
 
