@@ -1,9 +1,13 @@
 """Relative camera poses on the slambook2 chapter-5 RGB-D frames: feature RANSAC alone, with
-the dense ICP refinement (``rgbd_relative_pose(refine="icp")``) and with the joint dense +
-feature refinement (``refine="joint"``, the RANSAC inliers as point pairs weighted by their
-noise model), against the given (approximate) poses, per RANSAC seed; a sensitivity table over
-the joint refinement's relative feature weight; optionally ``cv2.Odometry`` (OpenCV 5,
-DEPTH / RGB / RGB_DEPTH) as an independent reference.
+the dense ICP refinement (``rgbd_relative_pose(refine="icp")``), with the joint dense +
+feature refinement (``refine="joint"``, the RANSAC inliers as 3-D point pairs weighted by their
+noise model) and with the joint dense + reprojection refinement (``REPROJ``:
+``DenseRefinement(feature_weight=1, feature_residual="pixel", feature_matches="all")``, all
+descriptor matches as 2-D reprojection residuals with a gated Tukey loss, re-selected every
+iteration), against the given (approximate) poses, per RANSAC seed; sensitivity tables over
+the relative feature weight (``--weights``, of ``--variant``) and the Tukey scale of the
+reprojection variant; optionally ``cv2.Odometry`` (OpenCV 5, DEPTH / RGB / RGB_DEPTH) as an
+independent reference.
 
 ``cv2.Odometry.compute`` takes no initial guess and fails on these wide baselines (0.2-0.7 m,
 up to 25 degrees) when started from the identity, so frame ``a`` (depth + grey) is first
@@ -11,7 +15,7 @@ forward-warped into ``b``'s view with the initial motion (z-buffered 2x2 splats)
 odometry's correction is composed with that motion.
 
     python experiments/slambook_refinement.py            # seeds 0..7, with cv2.Odometry
-    python experiments/slambook_refinement.py --seeds 2 --no-cv2 --weights 1 100
+    python experiments/slambook_refinement.py --seeds 2 --no-cv2 --weights 1 100 --variant joint
 
 Writes ``results/slambook_refinement/summary.md`` (and prints it).
 """
@@ -19,6 +23,7 @@ Writes ``results/slambook_refinement/summary.md`` (and prints it).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
@@ -27,6 +32,9 @@ import numpy as np
 from phjax import head_pose as H
 from phjax import rgbd_io as R
 from phjax.datasets import shared_data_dir
+
+
+REPROJ = H.DenseRefinement(feature_weight=1.0, feature_residual="pixel", feature_matches="all")
 
 
 def _rot_deg(ra: np.ndarray, rb: np.ndarray) -> float:
@@ -94,8 +102,14 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=8, help="RANSAC seeds 0..N-1 (default 8)")
     ap.add_argument("--no-cv2", action="store_true", help="skip the cv2.Odometry reference")
-    ap.add_argument("--weights", type=float, nargs="*", default=[1, 10, 100, 1000, 1e6],
+    ap.add_argument("--weights", type=float, nargs="*", default=[0.1, 10, 100],
                     help="feature weights of the sensitivity table (none: no table)")
+    ap.add_argument("--variant", choices=("reproj", "joint"), default="reproj",
+                    help="refinement of the weight table: reprojection pairs re-selected from "
+                         "all matches (default) or the RANSAC inliers as 3-D pairs")
+    ap.add_argument("--scales", type=float, nargs="*", default=[2.0, 4.685],
+                    help="Tukey scales (standard deviations) of the reprojection variant's "
+                         "table (default 3 in REPROJ; none: no table)")
     ap.add_argument("--out", default="results/slambook_refinement")
     args = ap.parse_args(argv)
     base = shared_data_dir()
@@ -104,7 +118,7 @@ def main(argv=None) -> int:
     seq = R.open_rgbd(base / "rgbd_frames_slambook2_ch5")
     frames = [seq[i] for i in range(5)]
     seeds = range(args.seeds)
-    for refine in ("icp", "joint"):  # compile outside the timings
+    for refine in ("icp", "joint", REPROJ):  # compile outside the timings
         H.rgbd_relative_pose(frames[3], frames[4], refine=refine)
     head = "| pair | stage | " + " | ".join(f"seed {s}" for s in seeds) + " | time / pair |"
     lines = ["# slambook2 ch5: relative camera pose errors (deg / cm) against pose.txt", "",
@@ -112,7 +126,7 @@ def main(argv=None) -> int:
     refined = {}
     for i in range(4):
         for stage, refine in (("RANSAC", None), ("RANSAC + ICP", "icp"),
-                              ("RANSAC + joint", "joint")):
+                              ("RANSAC + joint", "joint"), ("RANSAC + reproj", REPROJ)):
             cells, times = [], []
             for s in seeds:
                 t0 = time.perf_counter()
@@ -125,12 +139,21 @@ def main(argv=None) -> int:
             lines.append(f"| {i + 1}->{i + 2} | {stage} | " + " | ".join(cells)
                          + f" | {np.median(times):.2f} s |")
             print(lines[-1], flush=True)
+    tables = []
     if args.weights:
-        lines += ["", "Joint refinement, sensitivity to the relative feature weight "
-                  "(`DenseRefinement(feature_weight=w)`; 1 = noise models alone):", "", head,
-                  "|" + "---|" * (len(seeds) + 3)]
-        for wgt in args.weights:
-            cfg = H.DenseRefinement(feature_weight=wgt)
+        base_cfg = REPROJ if args.variant == "reproj" else H.DenseRefinement(feature_weight=1.0)
+        tables.append((f"{args.variant} refinement, sensitivity to the relative feature weight "
+                       "(`feature_weight=w`; 1 = noise models alone):",
+                       [(f"w = {w:g}", dataclasses.replace(base_cfg, feature_weight=w))
+                        for w in args.weights]))
+    if args.scales:
+        tables.append(("reproj refinement, sensitivity to the Tukey scale "
+                       "(`feature_loss_scale=c`, standard deviations; 3 in REPROJ):",
+                       [(f"c = {c:g}", dataclasses.replace(REPROJ, feature_loss_scale=c))
+                        for c in args.scales]))
+    for title, cfgs in tables:
+        lines += ["", title, "", head, "|" + "---|" * (len(seeds) + 3)]
+        for label, cfg in cfgs:
             H.rgbd_relative_pose(frames[3], frames[4], refine=cfg)  # compile
             for i in range(4):
                 cells, times = [], []
@@ -140,7 +163,7 @@ def main(argv=None) -> int:
                     times.append(time.perf_counter() - t0)
                     e = _errors(seq, i, rel.rotation, rel.translation)
                     cells.append(f"{e[0]:.2f} / {e[1]:.1f}")
-                lines.append(f"| {i + 1}->{i + 2} | w = {wgt:g} | " + " | ".join(cells)
+                lines.append(f"| {i + 1}->{i + 2} | {label} | " + " | ".join(cells)
                              + f" | {np.median(times):.2f} s |")
                 print(lines[-1], flush=True)
     if not args.no_cv2:

@@ -1014,6 +1014,15 @@ def rgbd_relative_pose(
     seed 6: 6 cm), where the few, partly wrong inliers of seeds 4 and 5 on 1 -> 2 pull it to
     11-13 cm (10 cm already at weight 10). So it is opt-in too.
 
+    ``refine=DenseRefinement(feature_weight=1.0, feature_residual="pixel",
+    feature_matches="all")`` uses 2-D reprojection residuals of *all* descriptor matches
+    instead (``pixel_pairs`` of :func:`phjax.icp.icp_projective`: ``b``'s accurate pixel
+    positions instead of its noisy far depth), with a Tukey loss whose gate shrinks with the
+    dense distance schedule, so matches are re-selected every iteration and a wrong RANSAC
+    consensus does not lock in. Same frames and seeds: every seed gives the same pose (within
+    0.01 degrees / 1 mm): 1 -> 2 1.3 degrees / 2.2 cm, 2 -> 3 0.70 / 2.7, 3 -> 4 0.78 / 5.4 cm,
+    4 -> 5 0.19 / 1.8; 3 -> 4 is still outside 5 cm, so this is opt-in as well.
+
     Returns:
         A :class:`RelativePose` mapping points of ``a`` into ``b``.
     """
