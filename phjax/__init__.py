@@ -7,6 +7,7 @@ Pythagorean-hodograph (PH) quintics. See the README for an overview.
 from . import face_detection, features, head_pose, io, rgbd_io, tuning
 from .face_detection import FaceDetection, FaceDetector, seed_model_cache
 from .head_pose import (
+    DenseRefinement,
     HeadPoseConfig,
     HeadPoseEstimator,
     HeadPoseResult,
@@ -101,6 +102,7 @@ __all__ = [
     "HeadPoseResult",
     "HeadPoseStatus",
     "rgbd_relative_pose",
+    "DenseRefinement",
     "CameraIntrinsics",
     "RGBDFrame",
     "RGBDSequence",

@@ -44,6 +44,39 @@ Gauss-Newton steps and stops early when the step moves the points by less than `
 for finite inputs, even when every point is invalid. (Derivatives through ICP are not supported:
 the correspondence search is discrete and the loop is a ``while_loop``.)
 
+Fixed point pairs (sparse + dense)
+---------------------------------
+``point_pairs=(s_k, y_k, w_k)`` adds fixed point-to-point correspondences (e.g. feature matches
+lifted to 3-D, the RANSAC inliers) to the same Gauss-Newton objective, as in RGB-D odometry
+with sparse and dense terms:
+
+    ``sum_i (rho_i / sigma^2) (n_i . (R s_i + t - y_i))^2 + sum_k e_k^T W_k e_k``,
+    ``e_k = R s_k + t - y_k``
+
+Each pair contributes three rows, the point-to-plane rows with normals ``e_x, e_y, e_z``.
+``W_k`` are information matrices (inverse covariances, 1/m^2; a scalar weight ``w_k`` means
+``w_k I``) and ``sigma`` the noise std of a dense
+residual (``dense_sigma``, by default estimated every iteration as the IRLS scale
+``sqrt(sum rho_i r_i^2 / sum rho_i)``, ``rho_i`` the robust weights), so both terms are weighted
+by their noise. Without dense correspondences the objective is the weighted point-to-point
+(Kabsch) problem of :func:`phjax.align`. Without ``point_pairs`` the iteration is the plain
+ICP above (weights need no scale: the step does not depend on it).
+
+Reprojection pairs (sparse 2-D + dense)
+---------------------------------------
+``pixel_pairs=(s_k, uv_k, W_k)`` adds fixed 3-D -> pixel correspondences instead (or as well):
+a source point ``s_k`` (e.g. a keypoint of the source frame lifted through its depth) and the
+pixel ``uv_k`` where its match was observed in the target camera. The residual is the
+reprojection error ``e_k = pi(R s_k + t) - uv_k`` (px) with information ``W_k`` (1/px^2), the
+sparse term of RGB-D odometry: it uses the accurate lateral position of the match in the target
+image and no target depth. Row ``m`` of its Jacobian is a point-to-plane row with the
+(non-unit) "normal" ``g_m = d pi_m / d x``, so it joins the same normal equations. Without
+dense correspondences the objective is a weighted PnP problem (as ``cv2.solvePnP``,
+``SOLVEPNP_ITERATIVE``; unlike PnP, a good initial guess is needed). A robust ``pixel_loss``
+with ``pixel_gate=True`` re-selects the matches every iteration: the scale of the loss
+follows the dense correspondence distance (projected at the point's depth), so all putative
+matches can be passed and a wrong initial consensus is not locked in.
+
 Status codes (:class:`IcpStatus`)
 ---------------------------------
 * ``OK`` (0): converged (last step shorter than ``tolerance``).
@@ -324,9 +357,25 @@ def _residuals(x, assoc: _Assoc):
 
 
 def _run_icp(associate, src, src_ok, q0, t0, dist, *, num_iterations, loss, loss_scale,
-             tolerance, degenerate_rtol, damping, min_correspondences) -> IcpResult:
-    """Gauss-Newton loop shared by both association strategies (single problem)."""
+             tolerance, degenerate_rtol, damping, min_correspondences, pairs=None,
+             dense_sigma=None, pair_weight=1.0, pair_loss="l2", pair_loss_scale=3.0,
+             pair_gate=False, pix=None, pixel_weight=1.0, pixel_loss="l2",
+             pixel_loss_scale=3.0, pixel_gate=False) -> IcpResult:
+    """Gauss-Newton loop shared by both association strategies (single problem).
+
+    ``pairs = (ps, pt, pinfo)``: fixed point-to-point correspondences (already sanitised,
+    information matrices ``pinfo`` (k, 3, 3) in 1/m^2, 0 = unused) whose residuals
+    ``R ps + t - pt`` join the normal equations (times ``pair_weight`` and the robust weight
+    of their Mahalanobis distance);
+    the dense residuals are then weighted by ``robust weight / sigma^2`` with ``sigma =
+    dense_sigma`` or, when ``None``, the IRLS scale estimate of the current iteration.
+    ``pix = (ps, uv, pinfo, (fx, fy, cx, cy))``: fixed 3-D -> pixel correspondences whose
+    reprojection residuals ``pi(R ps + t) - uv`` (px, information ``pinfo`` (k, 2, 2) in
+    1/px^2) join likewise. ``*_gate``: the robust scale of a pair is at least the current
+    correspondence distance ``dist[i]`` in the pair's noise units (see the public docstrings).
+    """
     dtype = src.dtype
+    eye = jnp.eye(3, dtype=dtype)
 
     def step(q, t, i):
         x = quat_rotate(q, src) + t
@@ -336,15 +385,90 @@ def _run_icp(associate, src, src_ok, q0, t0, dist, *, num_iterations, loss, loss
         r = _residuals(x, a)
         w = jnp.where(ok, _robust_weight(r, loss, loss_scale), 0)
         count = jnp.sum(w > 0, dtype=jnp.int32)  # (Tukey's loss gives outliers weight 0)
-        wsum = jnp.sum(w)
-        c = safe_div(jnp.einsum("n,ni->i", w, x), wsum)
+        sparse = pairs is not None or pix is not None
+        if sparse:
+            # dense residuals in the pairs' units: weight / sigma^2 (sigma^2 estimated as the
+            # robust-weighted mean square residual unless given)
+            var = (safe_div(jnp.sum(w * r * r), jnp.sum(w)) if dense_sigma is None
+                   else jnp.asarray(dense_sigma, dtype) ** 2)
+            w = jnp.where(var > 0, safe_div(w, var), 0)
+            wsum = jnp.sum(w)
+            wx = jnp.einsum("n,ni->i", w, x)
+        if pairs is not None:
+            ps, pt, pinfo = pairs  # pinfo: (k, 3, 3) information matrices
+            xp = quat_rotate(q, ps) + t
+            ep = xp - pt
+            # robust weight of the Mahalanobis distance, then the relative weight
+            maha = safe_sqrt(jnp.einsum("ki,kij,kj->k", ep, pinfo, ep))
+            used = jnp.trace(pinfo, axis1=-2, axis2=-1) > 0
+            sc = jnp.asarray(pair_loss_scale, dtype)
+            if pair_gate:  # the correspondence distance in noise units
+                sc = jnp.maximum(sc, dist[i] * safe_sqrt(jnp.trace(pinfo, axis1=-2,
+                                                                   axis2=-1) / 3))
+            rho = jnp.where(used, _robust_weight(maha, pair_loss, sc), 0)
+            pinfo = (pair_weight * rho)[:, None, None] * pinfo
+            pw = jnp.trace(pinfo, axis1=-2, axis2=-1) / 3  # scalar weights for c and L
+            count = count + jnp.sum(pw > 0, dtype=jnp.int32)
+            wsum = wsum + jnp.sum(pw)
+            wx = wx + jnp.einsum("k,ki->i", pw, xp)
+        if pix is not None:
+            qs, quv, qinfo, (pfx, pfy, pcx, pcy) = pix  # qinfo: (k, 2, 2), 1/px^2
+            xq = quat_rotate(q, qs) + t
+            zq = xq[:, 2]
+            front = zq > 1e-6
+            iz = jnp.where(front, 1 / jnp.where(front, zq, 1), 0)
+            eq = jnp.stack([pfx * xq[:, 0] * iz + pcx, pfy * xq[:, 1] * iz + pcy], -1) - quv
+            mq = safe_sqrt(jnp.einsum("ki,kij,kj->k", eq, qinfo, eq))
+            used = front & (jnp.trace(qinfo, axis1=-2, axis2=-1) > 0)
+            sq = jnp.trace(qinfo, axis1=-2, axis2=-1) / 2  # scalar information, 1/px^2
+            sc = jnp.asarray(pixel_loss_scale, dtype)
+            if pixel_gate:  # the correspondence distance seen at the point's depth, noise units
+                sc = jnp.maximum(sc, dist[i] * 0.5 * (pfx + pfy) * iz * safe_sqrt(sq))
+            rho = jnp.where(used, _robust_weight(mq, pixel_loss, sc), 0)
+            qinfo = (pixel_weight * rho)[:, None, None] * qinfo
+            # d(u, v)/dx: rows g_u, g_v of the projection Jacobian (1/m -> px)
+            gq = jnp.stack([
+                jnp.stack([pfx * iz, jnp.zeros_like(iz), -pfx * xq[:, 0] * iz * iz], -1),
+                jnp.stack([jnp.zeros_like(iz), pfy * iz, -pfy * xq[:, 1] * iz * iz], -1)],
+                axis=1)  # (k, 2, 3)
+            # scalar metric weights (1/m^2) for c and L: information times (f / z)^2
+            qw = (jnp.trace(qinfo, axis1=-2, axis2=-1) / 2
+                  * (0.5 * (pfx + pfy) * iz) ** 2)
+            count = count + jnp.sum(qw > 0, dtype=jnp.int32)
+            wsum = wsum + jnp.sum(qw)
+            wx = wx + jnp.einsum("k,ki->i", qw, xq)
+        if sparse:
+            c = safe_div(wx, wsum)
+        else:
+            wsum = jnp.sum(w)
+            c = safe_div(jnp.einsum("n,ni->i", w, x), wsum)
         xc = jnp.where(ok[:, None], x - c, 0)
-        ell = safe_sqrt(safe_div(jnp.einsum("n,ni,ni->", w, xc, xc), wsum))
+        msq = jnp.einsum("n,ni,ni->", w, xc, xc)
+        if pairs is not None:
+            xpc = xp - c
+            msq = msq + jnp.einsum("k,ki,ki->", pw, xpc, xpc)
+        if pix is not None:
+            xqc = xq - c
+            msq = msq + jnp.einsum("k,ki,ki->", qw, xqc, xqc)
+        ell = safe_sqrt(safe_div(msq, wsum))
         ell = jnp.where(ell > 0, ell, 1)
         jac = jnp.concatenate([jnp.cross(xc, a.nrm) / ell, a.nrm], axis=-1)  # (n, 6)
         jac = jnp.where(ok[:, None], jac, 0)
         amat = jnp.einsum("n,ni,nj->ij", w, jac, jac)
         bvec = -jnp.einsum("n,ni,n->i", w, jac, r)
+        if pairs is not None:
+            # a point-to-point residual is three point-to-plane residuals with normals e_x, e_y,
+            # e_z: rows [(x - c) x e_j / L, e_j]
+            jp = jnp.concatenate(
+                [jnp.cross(xpc[:, None, :], eye[None]) / ell,
+                 jnp.broadcast_to(eye, xpc.shape[:1] + (3, 3))], axis=-1)  # (k, 3, 6)
+            amat = amat + jnp.einsum("kji,kjm,kml->il", jp, pinfo, jp)
+            bvec = bvec - jnp.einsum("kji,kjm,km->i", jp, pinfo, ep)
+        if pix is not None:
+            # a reprojection residual row m is a point-to-plane row with "normal" g_m
+            jq = jnp.concatenate([jnp.cross(xqc[:, None, :], gq) / ell, gq], axis=-1)  # (k,2,6)
+            amat = amat + jnp.einsum("kji,kjm,kml->il", jq, qinfo, jq)
+            bvec = bvec - jnp.einsum("kji,kjm,km->i", jq, qinfo, eq)
         lam, vec = jnp.linalg.eigh(amat)
         lam_max = lam[-1]
         cond = safe_div(lam[0], lam_max)
@@ -446,6 +570,83 @@ def _common_setup(source, source_valid, initial_rotation, initial_translation,
     return src, src_ok, q0, t0, dist, jnp.asarray(loss_scale, dtype)
 
 
+def _check_loss(loss: str) -> str:
+    if loss not in _LOSSES:
+        raise ValueError(f"loss must be one of {_LOSSES}, got {loss!r}")
+    return loss
+
+
+def _prepare_pairs(point_pairs, dense_sigma, dtype):
+    """Sanitise ``point_pairs = (source, target, weights)``: non-finite rows get weight 0;
+    scalar weights become information matrices ``w I``."""
+    if point_pairs is None:
+        return None
+    try:
+        ps, pt, pw = (jnp.asarray(a) for a in point_pairs)
+    except (TypeError, ValueError):
+        raise ValueError("point_pairs must be a tuple (source, target, weights)") from None
+    _check_points("point_pairs source", ps)
+    k = ps.shape[0]
+    if pt.shape != ps.shape or pw.shape not in ((k,), (k, 3, 3)):
+        raise ValueError(
+            f"point_pairs need shapes (k, 3), (k, 3), (k,) or (k, 3, 3), got {tuple(ps.shape)}, "
+            f"{tuple(pt.shape)}, {tuple(pw.shape)}"
+        )
+    ps, pt, pw = ps.astype(dtype), pt.astype(dtype), pw.astype(dtype)
+    if pw.ndim == 1:
+        good = jnp.isfinite(pw) & (pw > 0)
+        pw = pw[:, None, None] * jnp.eye(3, dtype=dtype)
+    else:  # symmetric positive semi-definite with a positive trace
+        pw = 0.5 * (pw + jnp.swapaxes(pw, -1, -2))
+        good = jnp.all(jnp.isfinite(pw), axis=(-2, -1)) & (jnp.trace(pw, axis1=-2, axis2=-1) > 0)
+    ok = good & jnp.all(jnp.isfinite(ps), axis=-1) & jnp.all(jnp.isfinite(pt), axis=-1)
+    return (jnp.where(ok[:, None], ps, 0), jnp.where(ok[:, None], pt, 0),
+            jnp.where(ok[:, None, None], pw, 0))
+
+
+def _prepare_pixels(pixel_pairs, intrinsics, dtype):
+    """Sanitise ``pixel_pairs = (source, uv, weights)``: non-finite rows get weight 0; scalar
+    weights become information matrices ``w I`` (2x2)."""
+    if pixel_pairs is None:
+        return None
+    if intrinsics is None:
+        raise ValueError("pixel_pairs need pixel_intrinsics (the target camera's)")
+    try:
+        ps, uv, pw = (jnp.asarray(a) for a in pixel_pairs)
+    except (TypeError, ValueError):
+        raise ValueError("pixel_pairs must be a tuple (source, uv, weights)") from None
+    _check_points("pixel_pairs source", ps)
+    k = ps.shape[0]
+    if uv.shape != (k, 2) or pw.shape not in ((k,), (k, 2, 2)):
+        raise ValueError(
+            f"pixel_pairs need shapes (k, 3), (k, 2), (k,) or (k, 2, 2), got {tuple(ps.shape)}, "
+            f"{tuple(uv.shape)}, {tuple(pw.shape)}"
+        )
+    ps, uv, pw = ps.astype(dtype), uv.astype(dtype), pw.astype(dtype)
+    if pw.ndim == 1:
+        good = jnp.isfinite(pw) & (pw > 0)
+        pw = pw[:, None, None] * jnp.eye(2, dtype=dtype)
+    else:
+        pw = 0.5 * (pw + jnp.swapaxes(pw, -1, -2))
+        good = jnp.all(jnp.isfinite(pw), axis=(-2, -1)) & (jnp.trace(pw, axis1=-2, axis2=-1) > 0)
+    ok = good & jnp.all(jnp.isfinite(ps), axis=-1) & jnp.all(jnp.isfinite(uv), axis=-1)
+    return (jnp.where(ok[:, None], ps, 0), jnp.where(ok[:, None], uv, 0),
+            jnp.where(ok[:, None, None], pw, 0), _intrinsics(intrinsics, dtype))
+
+
+def _sparse_kwargs(point_pairs, dense_sigma, pair_weight, pair_loss, pair_loss_scale, pair_gate,
+                   pixel_pairs, pixel_intrinsics, pixel_weight, pixel_loss, pixel_loss_scale,
+                   pixel_gate, dtype) -> dict:
+    if point_pairs is None and pixel_pairs is None and dense_sigma is not None:
+        raise ValueError("dense_sigma is only used together with point_pairs or pixel_pairs")
+    return {"pairs": _prepare_pairs(point_pairs, dense_sigma, dtype), "dense_sigma": dense_sigma,
+            "pair_weight": pair_weight, "pair_loss": _check_loss(pair_loss),
+            "pair_loss_scale": pair_loss_scale, "pair_gate": bool(pair_gate),
+            "pix": _prepare_pixels(pixel_pairs, pixel_intrinsics, dtype),
+            "pixel_weight": pixel_weight, "pixel_loss": _check_loss(pixel_loss),
+            "pixel_loss_scale": pixel_loss_scale, "pixel_gate": bool(pixel_gate)}
+
+
 def icp_point_to_plane(
     source: Float[ArrayLike, "n 3"],
     target: Float[ArrayLike, "m 3"],
@@ -464,6 +665,18 @@ def icp_point_to_plane(
     damping: float = 1e-9,
     min_correspondences: int = 10,
     chunk_size: int = 256,
+    point_pairs: tuple[ArrayLike, ArrayLike, ArrayLike] | None = None,
+    dense_sigma: float | None = None,
+    pair_weight: float = 1.0,
+    pair_loss: str = "l2",
+    pair_loss_scale: float = 3.0,
+    pair_gate: bool = False,
+    pixel_pairs: tuple[ArrayLike, ArrayLike, ArrayLike] | None = None,
+    pixel_intrinsics: Any = None,
+    pixel_weight: float = 1.0,
+    pixel_loss: str = "l2",
+    pixel_loss_scale: float = 3.0,
+    pixel_gate: bool = False,
 ) -> IcpResult:
     """Point-to-plane ICP with brute-force nearest-neighbour correspondences.
 
@@ -493,8 +706,46 @@ def icp_point_to_plane(
             geometry only: noisy *estimated* normals fill the null space, e.g. a plane with
             Kinect-like noise at 0.9 m gives 0.02-0.2 (normal radius 4-1 px).
         damping: Levenberg damping relative to ``lambda_max``.
-        min_correspondences: fewer inliers give ``TOO_FEW_CORRESPONDENCES``.
+        min_correspondences: fewer inliers give ``TOO_FEW_CORRESPONDENCES`` (the pairs of
+            ``point_pairs`` with positive weight count as inliers too).
         chunk_size: source points per block of the distance computation (static).
+        point_pairs: optional fixed point-to-point correspondences ``(source (k, 3), target
+            (k, 3), weights (k,))``, e.g. matched features lifted to 3-D: the cost gains
+            ``sum_k weights_k |R source_k + t - target_k|^2`` (see "Fixed point pairs" in the
+            module docstring). ``weights`` are inverse variances per coordinate (1/m^2),
+            ``(k,)``, or information matrices (inverse covariances of the residual ``R
+            source_k - target_k``) ``(k, 3, 3)``, for anisotropic noise; non-finite rows and
+            weights ``<= 0`` (zero trace) are ignored. Pairs are not robustified
+            (pass inliers, e.g. of :func:`phjax.ransac_align`).
+        dense_sigma: with ``point_pairs``: the noise std (m) of a unit-weight point-to-plane
+            residual; ``None`` (default) estimates it every iteration as the robust-weighted
+            RMS residual (the usual IRLS scale estimate).
+        pair_weight: relative weight of the pairs (multiplies ``weights``; 1 = both terms
+            weighted by their noise models alone).
+        pair_loss, pair_loss_scale: robust loss of the pairs' Mahalanobis distances
+            ``sqrt(e_k^T W_k e_k)`` (dimensionless; e.g. ``"tukey"`` with scale 3 drops pairs
+            more than 3 standard deviations off), re-evaluated every iteration. Default
+            ``"l2"``: every pair counts.
+        pair_gate: with a robust ``pair_loss``: the loss scale of pair ``k`` is at least the
+            current ``max_correspondence_distance`` in its noise units, ``d_i sqrt(tr W_k /
+            3)``, so a coarse-to-fine distance schedule shrinks the gate with the dense term's.
+        pixel_pairs: optional fixed 3-D -> pixel correspondences ``(source (k, 3), uv (k, 2),
+            weights)``: source points and their observed pixels ``(u, v)`` in the target
+            camera; the cost gains the reprojection terms ``sum_k e_k^T W_k e_k``, ``e_k =
+            pi(R source_k + t) - uv_k`` (px, ``pi`` the pinhole projection with
+            ``pixel_intrinsics``), the sparse term of RGB-D odometry (see "Reprojection
+            pairs" in the module docstring). ``weights``: inverse pixel variances (1/px^2)
+            ``(k,)`` or information matrices ``(k, 2, 2)``; non-finite rows, weights ``<= 0``
+            and points behind the camera are ignored.
+        pixel_intrinsics: the target camera's intrinsics for ``pixel_pairs`` (required here;
+            :func:`icp_projective` defaults to its ``intrinsics``).
+        pixel_weight, pixel_loss, pixel_loss_scale: as ``pair_weight``, ``pair_loss``,
+            ``pair_loss_scale`` for the reprojection residuals (Mahalanobis distance
+            ``sqrt(e_k^T W_k e_k)``, dimensionless).
+        pixel_gate: with a robust ``pixel_loss``: the loss scale of pair ``k`` is at least the
+            current ``max_correspondence_distance`` seen at the point's depth, ``d_i f / z_k
+            sqrt(tr W_k / 2)`` (``f = (fx + fy) / 2``): wide while the dense term is coarse,
+            ``pixel_loss_scale`` at the end, so that matches are re-selected every iteration.
 
     Returns:
         An :class:`IcpResult` mapping source into target coordinates.
@@ -568,6 +819,9 @@ def icp_point_to_plane(
         num_iterations=int(num_iterations), loss=loss, loss_scale=scale,
         tolerance=tolerance, degenerate_rtol=degenerate_rtol,
         damping=damping, min_correspondences=int(min_correspondences),
+        **_sparse_kwargs(point_pairs, dense_sigma, pair_weight, pair_loss, pair_loss_scale,
+                         pair_gate, pixel_pairs, pixel_intrinsics, pixel_weight, pixel_loss,
+                         pixel_loss_scale, pixel_gate, dtype),
     )
 
 
@@ -589,6 +843,18 @@ def icp_projective(
     degenerate_rtol: float = 1e-3,
     damping: float = 1e-9,
     min_correspondences: int = 10,
+    point_pairs: tuple[ArrayLike, ArrayLike, ArrayLike] | None = None,
+    dense_sigma: float | None = None,
+    pair_weight: float = 1.0,
+    pair_loss: str = "l2",
+    pair_loss_scale: float = 3.0,
+    pair_gate: bool = False,
+    pixel_pairs: tuple[ArrayLike, ArrayLike, ArrayLike] | None = None,
+    pixel_intrinsics: Any = None,
+    pixel_weight: float = 1.0,
+    pixel_loss: str = "l2",
+    pixel_loss_scale: float = 3.0,
+    pixel_gate: bool = False,
 ) -> IcpResult:
     """Point-to-plane ICP with projective data association on an organised target.
 
@@ -659,5 +925,9 @@ def icp_projective(
         num_iterations=int(num_iterations), loss=loss, loss_scale=scale,
         tolerance=tolerance, degenerate_rtol=degenerate_rtol,
         damping=damping, min_correspondences=int(min_correspondences),
+        **_sparse_kwargs(point_pairs, dense_sigma, pair_weight, pair_loss, pair_loss_scale,
+                         pair_gate, pixel_pairs,
+                         intrinsics if pixel_intrinsics is None else pixel_intrinsics,
+                         pixel_weight, pixel_loss, pixel_loss_scale, pixel_gate, dtype),
     )
 

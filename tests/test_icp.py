@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from phjax import align
 from phjax.icp import (
     DEGENERATE,
     NOT_CONVERGED,
@@ -74,7 +75,8 @@ Q1, T1 = motion(np.deg2rad(8.0) * np.array([0.3, -0.8, 0.5]) / np.linalg.norm([0
                 np.array([0.02, -0.015, 0.01]), CENTRE)
 SOURCE1 = inverse_apply(Q1, T1, TARGET.reshape(-1, 3))
 
-_nn = jax.jit(icp_point_to_plane, static_argnames=("num_iterations", "loss", "chunk_size"))
+_nn = jax.jit(icp_point_to_plane, static_argnames=("num_iterations", "loss", "chunk_size",
+                                                  "pixel_loss", "pixel_gate"))
 _proj = jax.jit(icp_projective, static_argnames=("num_iterations", "loss"))
 
 
@@ -292,6 +294,203 @@ def test_robust_loss_rejects_outliers():
                   initial_translation=res["cauchy"].translation)
     ang, dt = pose_errors(near, Q1, T1)
     assert int(near.status) == OK and ang < 1e-6 and dt < 1e-6
+
+
+# ---------------------------------------------------------------- fixed point pairs (sparse)
+def pair_problem(q, t, n=40, noise=0.0, seed=3):
+    """``n`` points near the surface mapped by ``(q, t)`` (+ noise), and positive weights."""
+    rng = np.random.default_rng(seed)
+    s = CENTRE + rng.normal(0, 0.1, (n, 3))
+    y = Rotation.from_quat(np.roll(q, -1)).apply(s) + t + rng.normal(0, noise, (n, 3))
+    return s, y, rng.uniform(0.2, 2.0, n) * 1e4
+
+
+def test_point_pairs_alone_are_the_weighted_kabsch_problem():
+    # no dense correspondence (every source point masked): the objective is sum w |R s + t - y|^2
+    s, y, w = pair_problem(Q1, T1, noise=0.01)
+    w[::7] = 0  # unused pairs
+    ref = align(s, y, w)
+    none = np.zeros(len(SOURCE1), bool)
+    for res in (run_nn(SOURCE1, source_valid=none, point_pairs=(s, y, w), tolerance=1e-12),
+                run_proj(SOURCE1, source_valid=none, point_pairs=(s, y, w), tolerance=1e-12)):
+        assert int(res.status) == OK and int(res.num_inliers) == 0
+        np.testing.assert_allclose(res.rotation, ref.quaternion, atol=1e-10)
+        np.testing.assert_allclose(res.translation, ref.translation, atol=1e-10)
+    # the pairs alone must number at least min_correspondences
+    few = run_nn(SOURCE1, source_valid=none, point_pairs=(s[:5], y[:5], w[:5]))
+    assert int(few.status) == TOO_FEW_CORRESPONDENCES
+
+
+def test_point_pairs_join_the_dense_objective():
+    # dense data consistent with (Q1, T1), pairs with a motion 1 degree / 1 cm away
+    extra = Rotation.from_rotvec(np.deg2rad(1.0) * np.array([0.0, 0.6, 0.8]))
+    q2 = np.roll((extra * Rotation.from_quat(np.roll(Q1, -1))).as_quat(), 1)
+    t2 = T1 + np.array([0.01, 0, 0])
+    s, y, w = pair_problem(q2, t2)
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(len(s), 3, 3))
+    info = w[:, None, None] * (np.einsum("kij,klj->kil", a, a) + 0.1 * np.eye(3))  # anisotropic
+    sigma = 2e-3
+    errs = []
+    for scale in (1e-9, 1.0, 1e9):
+        res = run_nn(SOURCE1, point_pairs=(s, y, info), pair_weight=scale, dense_sigma=sigma,
+                     tolerance=1e-12,
+                     num_iterations=40, max_correspondence_distance=0.05)
+        assert int(res.status) == OK
+        errs.append((pose_errors(res, Q1, T1), pose_errors(res, q2, t2)))
+        if scale == 1.0:
+            # stationary point of the joint cost with the final correspondences (independent
+            # solver: scipy least squares over a rotation vector and a translation)
+            from scipy.optimize import least_squares
+
+            tree = cKDTree(TARGET.reshape(-1, 3))
+            rot0 = Rotation.from_quat(np.roll(np.asarray(res.rotation), -1))
+            _, idx = tree.query(rot0.apply(SOURCE1) + np.asarray(res.translation))
+            yt, nt = TARGET.reshape(-1, 3)[idx], NORMALS.reshape(-1, 3)[idx]
+
+            def resid(p):
+                rot = Rotation.from_rotvec(p[:3]) * rot0
+                x = rot.apply(SOURCE1) + p[3:]
+                xp = rot.apply(s) + p[3:]
+                chol = np.linalg.cholesky(info)  # e^T info e = |chol^T e|^2
+                return np.concatenate([np.sum(nt * (x - yt), -1) / sigma,
+                                       np.einsum("kij,ki->kj", chol, xp - y).ravel()])
+
+            x0 = np.concatenate([np.zeros(3), np.asarray(res.translation)])
+            sol = least_squares(resid, x0, xtol=1e-15, ftol=1e-15, gtol=1e-15)
+            assert np.linalg.norm(sol.x[:3]) < 1e-9 and np.linalg.norm(sol.x[3:] - x0[3:]) < 1e-9
+    # tiny pair weights: the dense motion; huge: the pairs' motion; in between: neither
+    (d_lo, p_lo), (d_mid, p_mid), (d_hi, p_hi) = errs
+    assert d_lo[0] < 1e-6 and d_lo[1] < 1e-6
+    assert p_hi[0] < 1e-6 and p_hi[1] < 1e-6
+    assert min(d_mid[1], p_mid[1]) > 1e-4
+    # a robust pair loss on the Mahalanobis distance drops pairs far off
+    s, y, w = pair_problem(Q1, T1)
+    w = w * 100  # sigma 0.7-2.2 mm
+    bad = np.arange(len(s)) % 5 == 0
+    y_bad = y + bad[:, None] * np.array([0.0, 0.05, 0.0])  # 5 cm off
+    none = np.zeros(len(SOURCE1), bool)
+    q0, t0 = np.roll(Rotation.from_rotvec([0.0, 0.002, 0.0]).as_quat(), 1), T1 + 5e-4
+    q0 = np.roll((Rotation.from_quat(np.roll(q0, -1)) * Rotation.from_quat(np.roll(Q1, -1)))
+                 .as_quat(), 1)
+    kw = dict(source_valid=none, num_iterations=30, tolerance=1e-12, initial_rotation=q0,
+              initial_translation=t0)
+    tgt, nrm = TARGET.reshape(-1, 3), NORMALS.reshape(-1, 3)
+    res = icp_point_to_plane(SOURCE1, tgt, nrm, point_pairs=(s, y_bad, w), pair_loss="tukey",
+                             pair_loss_scale=4.685, **kw)
+    assert int(res.status) == OK
+    ang, dt = pose_errors(res, Q1, T1)
+    assert ang < 1e-9 and dt < 1e-9
+    plain = icp_point_to_plane(SOURCE1, tgt, nrm, point_pairs=(s, y_bad, w), **kw)
+    assert pose_errors(plain, Q1, T1)[1] > 1e-3
+    with pytest.raises(ValueError, match="loss"):
+        icp_point_to_plane(SOURCE1, TARGET.reshape(-1, 3), NORMALS.reshape(-1, 3),
+                           point_pairs=(s, y, w), pair_loss="l1")
+    with pytest.raises(ValueError, match="dense_sigma"):
+        icp_point_to_plane(SOURCE1, TARGET.reshape(-1, 3), NORMALS.reshape(-1, 3),
+                           dense_sigma=0.01)
+    with pytest.raises(ValueError, match="point_pairs"):
+        icp_point_to_plane(SOURCE1, TARGET.reshape(-1, 3), NORMALS.reshape(-1, 3),
+                           point_pairs=(s, y, w[:-1]))
+
+
+def pixel_problem(q, t, n=60, noise=0.0, seed=5):
+    """``n`` 3-D points near the surface and their pixels in the target camera ``K`` after the
+    motion ``(q, t)`` (+ pixel noise)."""
+    rng = np.random.default_rng(seed)
+    s = CENTRE + rng.normal(0, 0.1, (n, 3))
+    x = Rotation.from_quat(np.roll(q, -1)).apply(s) + t
+    uv = np.stack([K.fx * x[:, 0] / x[:, 2] + K.cx, K.fy * x[:, 1] / x[:, 2] + K.cy], -1)
+    return s, uv + rng.normal(0, noise, uv.shape)
+
+
+def test_pixel_pairs_alone_are_the_pnp_problem():
+    # no dense correspondence: the objective is the reprojection error, i.e. PnP. Noise-free
+    # pixels give the exact motion; with 1 px noise the minimiser equals cv2.solvePnP's
+    # (SOLVEPNP_ITERATIVE, Levenberg-Marquardt on the same cost, its own initialisation) to
+    # cv2's convergence tolerance.
+    import cv2
+
+    none = np.zeros(len(SOURCE1), bool)
+    kw = dict(source_valid=none, tolerance=1e-12, pixel_intrinsics=K)
+    s, uv = pixel_problem(Q1, T1)
+    res = run_nn(SOURCE1, pixel_pairs=(s, uv, np.ones(len(s))), **kw)
+    assert int(res.status) == OK and int(res.num_inliers) == 0
+    ang, dt = pose_errors(res, Q1, T1)
+    assert ang < 1e-10 and dt < 1e-10
+    s, uv = pixel_problem(Q1, T1, noise=1.0)
+    kmat = np.asarray(K.matrix, np.float64)
+    ok, rvec, tvec = cv2.solvePnP(s, uv, kmat, None, flags=cv2.SOLVEPNP_ITERATIVE)
+    assert ok
+    q_cv = np.roll(Rotation.from_rotvec(rvec.ravel()).as_quat(), 1)
+    for res in (run_nn(SOURCE1, pixel_pairs=(s, uv, np.full(len(s), 4.0)), **kw),
+                run_proj(SOURCE1, pixel_pairs=(s, uv, np.ones(len(s))), source_valid=none,
+                         tolerance=1e-12)):  # icp_projective: its intrinsics by default
+        assert int(res.status) == OK
+        ang, dt = pose_errors(res, q_cv, tvec.ravel())
+        # (cv2 stops its Levenberg-Marquardt after 20 steps or a relative change of FLT_EPSILON)
+        assert ang < 1e-5 and dt < 1e-5, (ang, dt)
+        assert pose_errors(res, Q1, T1)[1] > 1e-4  # the noise moved the optimum
+    few = run_nn(SOURCE1, pixel_pairs=(s[:5], uv[:5], np.ones(5)), **kw)
+    assert int(few.status) == TOO_FEW_CORRESPONDENCES
+    with pytest.raises(ValueError, match="pixel_intrinsics"):
+        icp_point_to_plane(SOURCE1, TARGET.reshape(-1, 3), NORMALS.reshape(-1, 3),
+                           pixel_pairs=(s, uv, np.ones(len(s))))
+    with pytest.raises(ValueError, match="pixel_pairs"):
+        icp_point_to_plane(SOURCE1, TARGET.reshape(-1, 3), NORMALS.reshape(-1, 3),
+                           pixel_pairs=(s, uv[:, :1], np.ones(len(s))), pixel_intrinsics=K)
+    with pytest.raises(ValueError, match="loss"):
+        run_nn(SOURCE1, pixel_pairs=(s, uv, np.ones(len(s))), pixel_loss="l1", **kw)
+
+
+def test_pixel_pairs_join_the_dense_objective_and_gate_outliers():
+    # dense data consistent with (Q1, T1), pixels of a motion 1 degree / 1 cm away, anisotropic
+    # 2x2 information: the result is the stationary point of the joint cost
+    from scipy.optimize import least_squares
+
+    extra = Rotation.from_rotvec(np.deg2rad(1.0) * np.array([0.0, 0.6, 0.8]))
+    q2 = np.roll((extra * Rotation.from_quat(np.roll(Q1, -1))).as_quat(), 1)
+    t2 = T1 + np.array([0.01, 0, 0])
+    s, uv = pixel_problem(q2, t2)
+    rng = np.random.default_rng(6)
+    a = rng.normal(size=(len(s), 2, 2))
+    info = np.einsum("kij,klj->kil", a, a) + 0.1 * np.eye(2)
+    sigma = 2e-3
+    res = run_nn(SOURCE1, pixel_pairs=(s, uv, info), pixel_intrinsics=K, dense_sigma=sigma,
+                 tolerance=1e-12, num_iterations=40, max_correspondence_distance=0.05)
+    assert int(res.status) == OK
+    assert min(pose_errors(res, Q1, T1)[1], pose_errors(res, q2, t2)[1]) > 1e-4
+    tree = cKDTree(TARGET.reshape(-1, 3))
+    rot0 = Rotation.from_quat(np.roll(np.asarray(res.rotation), -1))
+    _, idx = tree.query(rot0.apply(SOURCE1) + np.asarray(res.translation))
+    yt, nt = TARGET.reshape(-1, 3)[idx], NORMALS.reshape(-1, 3)[idx]
+    chol = np.linalg.cholesky(info)
+
+    def resid(p):
+        rot = Rotation.from_rotvec(p[:3]) * rot0
+        x = rot.apply(SOURCE1) + p[3:]
+        xp = rot.apply(s) + p[3:]
+        e = np.stack([K.fx * xp[:, 0] / xp[:, 2] + K.cx, K.fy * xp[:, 1] / xp[:, 2] + K.cy],
+                     -1) - uv
+        return np.concatenate([np.sum(nt * (x - yt), -1) / sigma,
+                               np.einsum("kij,ki->kj", chol, e).ravel()])
+
+    x0 = np.concatenate([np.zeros(3), np.asarray(res.translation)])
+    sol = least_squares(resid, x0, xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    assert np.linalg.norm(sol.x[:3]) < 1e-9 and np.linalg.norm(sol.x[3:] - x0[3:]) < 1e-9
+    # every fifth pixel 30 px off (wrong matches): a gated Tukey loss drops them (the gate
+    # follows the distance schedule: 0.1 m at 0.8 m is 12.5 px, then 3 px at the end) and
+    # the motion is exact; an L2 pixel term is pulled away
+    s, uv = pixel_problem(Q1, T1)
+    uv_bad = uv + (np.arange(len(s)) % 5 == 0)[:, None] * np.array([30.0, 0.0])
+    kw = dict(pixel_intrinsics=K, dense_sigma=1e-3, tolerance=1e-12)
+    res = run_nn(SOURCE1, pixel_pairs=(s, uv_bad, np.ones(len(s))), pixel_loss="tukey",
+                 pixel_loss_scale=3.0, pixel_gate=True, **kw)
+    assert int(res.status) == OK
+    ang, dt = pose_errors(res, Q1, T1)
+    assert ang < 1e-9 and dt < 1e-9
+    plain = run_nn(SOURCE1, pixel_pairs=(s, uv_bad, np.ones(len(s))), **kw)
+    assert pose_errors(plain, Q1, T1)[1] > 1e-4
 
 
 # -------------------------------------------------------------- point-to-plane vs point-to-point
