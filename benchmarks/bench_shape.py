@@ -48,9 +48,15 @@ def parse_args(argv=None):
     p.add_argument("--only", default=",".join(SECTIONS),
                    help=f"comma-separated subset of {','.join(SECTIONS)}")
     p.add_argument("--segments", type=int, default=10_000, help="batch size of the throughput run")
-    p.add_argument("--data", default=str(ROOT.parent / "shared" / "data"),
-                   help="shared data directory")
+    p.add_argument("--data", default=None,
+                   help="shared data directory (default: phjax.datasets.shared_data_dir(), i.e. "
+                        "$PHJAX_SHARED_DATA or ../shared/data)")
     args = p.parse_args(argv)
+    if args.data is None:
+        from phjax.datasets import shared_data_dir
+
+        found = shared_data_dir()
+        args.data = str(found if found is not None else ROOT.parent / "shared" / "data")
     args.only = [s.strip() for s in args.only.split(",") if s.strip()]
     bad = [s for s in args.only if s not in SECTIONS]
     if bad:
