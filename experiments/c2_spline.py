@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
@@ -42,6 +43,7 @@ from tune_baselines import prepare  # noqa: E402
 from phjax import baselines  # noqa: E402
 from phjax.kalman import KalmanConfig, kalman_filter, rts_smooth  # noqa: E402
 from phjax.metrics import position_rmse, rms_jerk_position  # noqa: E402
+from phjax.ph_quintic import PHQuintic  # noqa: E402
 from phjax.ph_spline import SplineStatus, ph_spline  # noqa: E402
 from phjax.tracker import reconstruct  # noqa: E402
 
@@ -56,7 +58,8 @@ def c2_render(t, p, v, r, window):
     """C2 spline in windows of ``window`` intervals through (t, p), clamped to v; render at r."""
     n = len(t) - 1
     starts = list(range(0, n, window))
-    coef = np.zeros((n, 6, 3))
+    fields = {"A0": np.zeros((n, 4)), "A1": np.zeros((n, 4)), "A2": np.zeros((n, 4)),
+              "control_points": np.zeros((n, 6, 3))}
     steps, resid, bad, not_fairest = [], [], 0, 0
     for s in starts:
         e = min(s + window, n)
@@ -68,12 +71,12 @@ def c2_render(t, p, v, r, window):
         resid.append(float(sol.residual))
         bad += not bool(sol.ok)
         not_fairest += int(sol.status) == SplineStatus.NOT_FAIREST
-        coef[s:e] = np.asarray(curves.control_points)
+        for name, arr in fields.items():  # a later window overrides an overlapped tail
+            arr[s:e] = np.asarray(getattr(curves, name))
     idx = np.clip(np.searchsorted(t, r, side="right") - 1, 0, n - 1)
-    u = np.clip((r - t[idx]) / (t[idx + 1] - t[idx]), 0, 1)[:, None]
-    P = coef[idx]
-    b = [1, 5, 10, 10, 5, 1]
-    out = sum(b[k] * (1 - u) ** (5 - k) * u ** k * P[:, k] for k in range(6))
+    u = np.clip((r - t[idx]) / (t[idx + 1] - t[idx]), 0, 1)
+    segs = PHQuintic(**{k: jnp.asarray(v[idx]) for k, v in fields.items()})
+    out = np.asarray(jax.vmap(lambda c, x: c.position(x))(segs, jnp.asarray(u)))
     return out, steps, resid, bad, not_fairest
 
 
