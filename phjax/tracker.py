@@ -80,9 +80,9 @@ class TrackerConfig(eqx.Module):
         horizon: settling time of each correction, s: the stream reaches the filter's
             prediction ``horizon`` seconds after each camera frame. The main smoothness knob:
             longer is smoother (lower jerk), shorter follows the filter more closely. Default
-            0.03 s (development set, 30 Hz camera, 120 Hz render: RMSE 1.04x and RMS jerk
-            0.27x of the filter's own constant-velocity extrapolation for position; see
-            ``experiments/tune_baselines.py``).
+            0.028 s (development set, 30 Hz camera, 120 Hz render: RMSE 1.037x / 1.044x and
+            RMS jerk 0.290x / 0.293x of the filter's own constant-velocity extrapolation for
+            position / rotation; see ``experiments/tune_baselines.py --horizon-only``).
         coast_time: after a segment ends without a new frame, keep moving with the end
             velocities for this long, s (default 0.1).
         stop_time: then let the velocities decay with this time constant, s (default 0.05).
