@@ -78,6 +78,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ._misc import dot_last
 from .quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
 
 __all__ = [
@@ -244,6 +245,15 @@ _C0, _C1, _C2 = _series_coeffs(1), _series_coeffs(2), _series_coeffs(3)
 _D1, _D2 = _series_coeffs(4), _series_coeffs(5, scale=2.0)
 
 
+def _horner_const(coeffs, x):
+    """Polynomial with constant coefficients (highest power first) by Horner's rule, unrolled
+    (``jnp.polyval`` runs a loop: several kernels on XLA:CPU)."""
+    acc = float(coeffs[0])
+    for c in coeffs[1:]:
+        acc = acc * x + float(c)
+    return acc
+
+
 def _so3_coeffs(theta2):
     """``(c0, c1, c2, d1, d2)`` of ``theta^2`` (Taylor series for ``theta < 1``), NaN-safe.
 
@@ -252,7 +262,7 @@ def _so3_coeffs(theta2):
     """
     small = theta2 < 1
     x = jnp.where(small, theta2, 0)
-    series = [jnp.polyval(jnp.asarray(c, theta2.dtype), x) for c in (_C0, _C1, _C2, _D1, _D2)]
+    series = [_horner_const(c, x) for c in (_C0, _C1, _C2, _D1, _D2)]
     t2 = jnp.where(small, 1, theta2)
     t = jnp.sqrt(t2)
     s, c = jnp.sin(t), jnp.cos(t)
@@ -278,9 +288,10 @@ def _hemisphere_sign(q):
     ``sign(w)``; at exactly 180 degrees (``w == 0``) the sign of the largest-magnitude vector
     component, so the choice is sign-invariant there too.
     """
-    w, v = q[..., 0], q[..., 1:]
-    k = jnp.argmax(jnp.abs(v), axis=-1)
-    sv = jnp.sign(jnp.take_along_axis(v, k[..., None], -1)[..., 0])
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    ax, ay, az = jnp.abs(x), jnp.abs(y), jnp.abs(z)
+    # the first component of largest magnitude (argmax's tie rule), as selects (no reduction)
+    sv = jnp.sign(jnp.where((ax >= ay) & (ax >= az), x, jnp.where(ay >= az, y, z)))
     return jnp.where(w != 0, jnp.sign(w), jnp.where(sv != 0, sv, 1)).astype(q.dtype)
 
 
@@ -341,8 +352,9 @@ def _measurement_validity(position, quaternion, dtype):
             f"expected position of shape (3,) and quaternion of shape (4,), got {p.shape} and "
             f"{qm.shape} (use jax.vmap for batches)"
         )
-    pos_valid = jnp.all(jnp.isfinite(p))
-    rot_valid = jnp.all(jnp.isfinite(qm)) & (jnp.sum(jnp.where(jnp.isfinite(qm), qm, 0) ** 2) > 0)
+    fin_p, fin_q = jnp.isfinite(p), jnp.isfinite(qm)  # written out: no reduction kernels
+    pos_valid = fin_p[0] & fin_p[1] & fin_p[2]
+    rot_valid = fin_q[0] & fin_q[1] & fin_q[2] & fin_q[3] & (dot_last(qm, qm) > 0)
     return p, qm, pos_valid, rot_valid
 
 
@@ -864,7 +876,10 @@ def predict_pose(
         ``(position, quaternion, velocity, angular_velocity)`` at ``t``.
     """
     _, dt = _clamped_time(state, t)
-    f1, _ = _pos_matrices(config.order, dt)
-    x = f1 @ state.x.reshape(config.order, 3)
+    n = config.order
+    xs = [state.x[3 * i : 3 * i + 3] for i in range(n)]
+    # x_i(t) = sum_k dt^(k-i) / (k-i)! x_k, written out (a dot is a kernel of its own on CPU)
+    x = [sum((dt ** (k - i) / math.factorial(k - i) * xs[k] for k in range(i + 1, n)), xs[i])
+         for i in range(2)]
     q = quat_normalize(quat_mul(quat_from_rotvec(state.w * dt), state.q))
     return x[0], q, x[1], state.w

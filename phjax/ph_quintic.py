@@ -49,7 +49,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._misc import safe_atan2, safe_div, safe_norm, safe_normalize, safe_sqrt, unit_perpendicular
+from ._misc import (
+    dot_last,
+    safe_atan2,
+    safe_div,
+    safe_norm,
+    safe_normalize,
+    safe_sqrt,
+    sum_last,
+    unit_perpendicular,
+)
+from ._misc import _UNROLL_SIZE
 from .quaternion import quat_conj, quat_mul, quat_normalize, quat_to_matrix
 
 __all__ = ["PHQuintic", "hermite_quintic", "near_optimal_angles", "FrameKind"]
@@ -131,7 +141,7 @@ def _unit_fibre(xhat, u, m=None):
     >= sqrt(3); default :func:`unit_perpendicular`). Both are exact; the angle origin jumps by a
     phase at the switch.
     """
-    c = jnp.sum(xhat * u, axis=-1, keepdims=True)
+    c = dot_last(xhat, u, keepdims=True)
     main = c > -0.5
     n1 = (xhat + u) / safe_sqrt(jnp.where(main, 2 + 2 * c, 1.0))
     n2 = (xhat - u) / safe_sqrt(jnp.where(main, 1.0, 2 - 2 * c))
@@ -200,7 +210,7 @@ def _make_frame(u, p0, p1, d0, d1) -> _Frame:
     # first data vector (in this order) with a part perpendicular to u: (p1 - p0) + d1, then
     # p1 - p0, then d1 (the sum cancels when d1 = -(p1 - p0), found by hypothesis)
     for v in (d1, p1 - p0, (p1 - p0) + d1):
-        vp = v - jnp.sum(v * u, axis=-1, keepdims=True) * u
+        vp = v - dot_last(v, u, keepdims=True) * u
         ok = safe_norm(vp, keepdims=True) > 1e-9 * scale
         m = jnp.where(ok, safe_normalize(vp), m)
     return _Frame(u=u, r=_unit_fibre(u, ex), m=m)
@@ -245,7 +255,13 @@ class PHQuintic(eqx.Module):
 
     def _power(self, k: int):
         """Power-basis position coefficients ``c0..c5`` with ``k`` parameter axes inserted."""
-        c = jnp.einsum("jk,...kd->...jd", _M5.astype(self.dtype), self.control_points)
+        cp = self.control_points
+        if cp.size > _UNROLL_SIZE:
+            c = jnp.einsum("jk,...kd->...jd", _M5.astype(self.dtype), cp)
+        else:  # few curves: multiply-adds that fuse (a dot is a kernel of its own)
+            pts = [cp[..., i, :] for i in range(6)]
+            c = jnp.stack([sum((float(_M5[j, i]) * pts[i] for i in range(1, j + 1)),
+                               float(_M5[j, 0]) * pts[0]) for j in range(6)], axis=-2)
         return self._ex(c, k, 2)
 
     def _A(self, t, k: int):
@@ -298,11 +314,11 @@ class PHQuintic(eqx.Module):
         """Parametric speed ``sigma(t) = |r'(t)| = |A(t)|^2`` (a quartic polynomial)."""
         t, k = self._prep_t(t)
         a = self._A(t, k)
-        return jnp.sum(a * a, axis=-1)
+        return dot_last(a, a)
 
     def _sigma_bern(self):
         a0, a1, a2 = self.A0, self.A1, self.A2
-        dot = lambda x, y: jnp.sum(x * y, axis=-1)  # noqa: E731
+        dot = dot_last
         return jnp.stack(
             [dot(a0, a0), dot(a0, a1), (2 * dot(a1, a1) + dot(a0, a2)) / 3, dot(a1, a2), dot(a2, a2)],
             axis=-1,
@@ -311,7 +327,7 @@ class PHQuintic(eqx.Module):
     @property
     def length(self) -> Float[Array, "*batch"]:
         """Total arc length ``L = (sigma0 + ... + sigma4) / 5``."""
-        return jnp.sum(self._sigma_bern(), axis=-1) / 5
+        return sum_last(self._sigma_bern()) / 5
 
     def _arc_power(self, k: int):
         sig = self._sigma_bern()
@@ -345,7 +361,7 @@ class PHQuintic(eqx.Module):
     def _curv_parts(self, t, k):
         a = self._A(t, k)
         da = self._dA(t, k)
-        sigma = jnp.sum(a * a, axis=-1)
+        sigma = dot_last(a, a)
         b = quat_mul(quat_conj(a), da)[..., 1:]
         return a, da, sigma, b
 
@@ -364,7 +380,7 @@ class PHQuintic(eqx.Module):
         t, k = self._prep_t(t)
         _, _, sigma, b = self._curv_parts(t, k)
         d1, d2, d3 = self._derivs(t, k)
-        num = jnp.sum(jnp.cross(d1, d2) * d3, axis=-1)
+        num = dot_last(jnp.cross(d1, d2), d3)
         den = sigma * sigma * 4 * (b[..., 1] ** 2 + b[..., 2] ** 2)
         return safe_div(num, den)
 
@@ -423,7 +439,7 @@ class PHQuintic(eqx.Module):
     def _erf_quat(self, t, k):
         a = self._A(t, k)
         da = self._dA(t, k)
-        sigma = jnp.sum(a * a, axis=-1, keepdims=True)
+        sigma = dot_last(a, a, keepdims=True)
         return jnp.where(sigma > 0, quat_normalize(a), quat_normalize(da))
 
     def _frenet(self, t):
@@ -582,13 +598,13 @@ def _cc_angles(p0, p1, d0, d1, frame=None):
     q1 = _unit_fibre(d1hat, u, data.m)
     s = safe_sqrt(safe_norm(d0) * safe_norm(d1))[..., None]
     e = 2 * s * q1[..., 1:]
-    main = jnp.sum(d1hat * u, axis=-1, keepdims=True) > -0.5
+    main = dot_last(d1hat, u, keepdims=True) > -0.5
     f_main = -jnp.cross(u, d1hat - u) / safe_norm(d1hat + u, keepdims=True).clip(1.0)
     f_alt = quat_mul(_qpure(u), quat_conj(q1))[..., 1:]
     f = 2 * s * jnp.where(main, f_main, f_alt)
     dp = p1 - p0
     w = 3 * dp - (d0 + d1)
-    dot = lambda x, y: jnp.sum(x * y, axis=-1)  # noqa: E731
+    dot = dot_last
     gee, gff, gef = dot(e, e), dot(f, f), dot(e, f)
     be, bf = dot(e, w), dot(f, w)
     reg = _CC_REGULARISATION * (gee + gff) / 2
@@ -692,5 +708,11 @@ def _from_coefficients(p0, A0, A1, A2) -> PHQuintic:
     h3 = _sym_i(A1, A2) / 2
     h4 = _sandwich_i(A2, A2)
     steps = jnp.stack([h0, h1, h2, h3, h4], axis=-2) / 5
-    pts = jnp.concatenate([p0[..., None, :], p0[..., None, :] + jnp.cumsum(steps, axis=-2)], -2)
+    if p0.size * 5 <= _UNROLL_SIZE:  # small batch: running sums as adds (cumsum is a kernel)
+        pts = [p0]
+        for k in range(5):
+            pts.append(pts[-1] + steps[..., k, :])
+        pts = jnp.stack(pts, axis=-2)
+    else:
+        pts = jnp.concatenate([p0[..., None, :], p0[..., None, :] + jnp.cumsum(steps, axis=-2)], -2)
     return PHQuintic(A0=A0, A1=A1, A2=A2, control_points=pts)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._misc import safe_atan2, safe_div, safe_norm, safe_sqrt
+from ._misc import dot_last, safe_atan2, safe_div, safe_norm, safe_sqrt
 
 __all__ = [
     "quat_mul",
@@ -40,15 +40,15 @@ def _split(q):
 
 def quat_identity(shape: tuple[int, ...] = (), dtype=None) -> Float[Array, "*shape 4"]:
     """Identity quaternions ``(1, 0, 0, 0)`` of the given batch shape."""
-    q = jnp.zeros(shape + (4,), dtype=dtype)
-    return q.at[..., 0].set(1)
+    dtype = jnp.zeros((), dtype=dtype).dtype
+    return jnp.broadcast_to(jnp.asarray([1, 0, 0, 0], dtype), shape + (4,))
 
 
 def quat_mul(p: Float[ArrayLike, "... 4"], q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
     """Hamilton product ``p q`` (``(a, u)(b, v) = (ab - u.v, a v + b u + u x v)``)."""
     a, u = _split(p)
     b, v = _split(q)
-    w = a * b - jnp.sum(u * v, axis=-1)
+    w = a * b - dot_last(u, v)
     xyz = a[..., None] * v + b[..., None] * u + jnp.cross(u, v)
     return jnp.concatenate([w[..., None], xyz], axis=-1)
 
@@ -62,7 +62,7 @@ def quat_conj(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
 def quat_inv(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
     """Inverse ``q* / |q|^2`` (0 for the zero quaternion)."""
     q = jnp.asarray(q)
-    return safe_div(quat_conj(q), jnp.sum(q * q, axis=-1, keepdims=True))
+    return safe_div(quat_conj(q), dot_last(q, q, keepdims=True))
 
 
 def quat_normalize(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:

@@ -51,7 +51,7 @@ from .kalman import (
     rts_smooth,
 )
 from .orientation import QuaternionHermite, quaternion_hermite
-from .ph_quintic import PHQuintic, _bern_to_power, hermite_quintic
+from .ph_quintic import PHQuintic, hermite_quintic
 from .quaternion import (
     quat_conj,
     quat_exp,
@@ -107,26 +107,46 @@ class TrackerState(eqx.Module):
     Fields:
         filter: the Kalman filter state.
         t0: time of the last segment start (the last camera frame used), s.
-        duration: durations of the two pieces of the segment, s, ``(2,)``.
-        curve: the two position pieces (a :class:`PHQuintic` batch of 2), each on its own
-            parameter ``(t - start) / duration``.
-        rotation: the two orientation pieces (a :class:`QuaternionHermite` batch of 2).
         started: whether a valid measurement has been seen (before that samples are NaN).
-        render: everything a render sample needs, packed in one vector (layout ``_R``): per
-            piece its start, end and reciprocal duration, the power basis of its position
-            curve, its rotation curve with the norms and reciprocal norms of the increments;
-            then ``started``, the end pose and velocities and the coasting parameters of the
-            config of the last update. :func:`tracker_sample` passes this single array to a
-            kernel of a few fused operations.
+        render: the current segment packed in one vector (layout ``_R``): per piece its start,
+            end, duration and reciprocal duration, its position curve (quaternion coefficients,
+            Bezier control points and power basis) and its rotation curve with the norms and
+            reciprocal norms of the increments; then ``started``, the end pose and velocities
+            and the coasting parameters of the config of the last update. Few arrays cross the
+            jit boundary (each costs dispatch time), and :func:`tracker_sample` passes this
+            single array to a kernel of a few fused operations.
+
+    Properties (views of ``render``): ``duration`` (2,), the durations of the segment's two
+    pieces, s; ``curve``, the two position pieces (a :class:`PHQuintic` batch of 2), each on its
+    own parameter ``(t - start) / duration``; ``rotation``, the two orientation pieces (a
+    :class:`QuaternionHermite` batch of 2).
     """
 
     filter: KalmanState
     t0: Float[Array, ""]
-    duration: Float[Array, "2"]
-    curve: PHQuintic
-    rotation: QuaternionHermite
     started: Bool[Array, ""]
-    render: Float[Array, "99"]
+    render: Float[Array, " R"]
+
+    def _pieces(self):
+        return self.render[: 2 * _PIECE].reshape(2, _PIECE)
+
+    def _field(self, name):
+        a, b = _P[name]
+        return self._pieces()[:, a:b]
+
+    @property
+    def duration(self) -> Float[Array, "2"]:
+        return self._field("dur")[:, 0]
+
+    @property
+    def curve(self) -> PHQuintic:
+        f = self._field
+        return PHQuintic(A0=f("A0"), A1=f("A1"), A2=f("A2"), control_points=f("cp").reshape(2, 6, 3))
+
+    @property
+    def rotation(self) -> QuaternionHermite:
+        f = self._field
+        return QuaternionHermite(q0=f("q0"), w1=f("w1"), w2=f("w2"), w3=f("w3"), duration=self.duration)
 
 
 # layout of TrackerState.render: two piece blocks, then the common part. The per-piece
@@ -134,8 +154,9 @@ class TrackerState(eqx.Module):
 # of the duration and, for each exponential of the rotation curve ``exp(b w)`` (``b >= 0``),
 # the norm ``n = |w|`` and ``1/n`` (0 at 0), so that ``exp(b w) = (cos(b n), sin(b n)/n w)``
 # needs one sin/cos of a small vector and no division.
-_PIECE_LAYOUT = (("t0", 1), ("t_end", 1), ("inv_dur", 1), ("coef", 18), ("q0", 4), ("w1", 3),
-                 ("w2", 3), ("w3", 3), ("n", 3), ("inv_n", 3))
+_PIECE_LAYOUT = (("t0", 1), ("t_end", 1), ("dur", 1), ("inv_dur", 1), ("coef", 18), ("q0", 4),
+                 ("w1", 3), ("w2", 3), ("w3", 3), ("n", 3), ("inv_n", 3), ("A0", 4), ("A1", 4),
+                 ("A2", 4), ("cp", 18))
 _COMMON_LAYOUT = (("started", 1), ("p_end", 3), ("v_end", 3), ("q_end", 4), ("w_end", 3),
                   ("n_end", 1), ("inv_n_end", 1), ("coast", 1), ("stop", 1), ("inv_stop", 1))
 
@@ -150,10 +171,6 @@ def _offsets(layout, off=0):
 
 _P, _PIECE = _offsets(_PIECE_LAYOUT)
 _R, _RENDER_SIZE = _offsets(_COMMON_LAYOUT, 2 * _PIECE)
-
-# Bernstein -> power basis of a quintic (c_j = sum_k _M5[j, k] P_k), as Python numbers
-_M5 = [[float(x) for x in row] for row in _bern_to_power(5)]
-
 
 def _vnorm_inv(v):
     """``(|v|, 1/|v|)`` of 3-vectors (``1/|v| = 0`` at 0), finite gradients at 0."""
@@ -171,28 +188,21 @@ def _make_state(config, kf, t0, duration, curve, rotation, started, ends) -> Tra
     """
     p_end, v_end, q_end, w_end = ends
     dtype = t0.dtype
-    cp = curve.control_points  # (2, 6, 3)
-    pts = [cp[:, k] for k in range(6)]
-    coef = []
-    for j in range(6):
-        acc = None
-        for k in range(j + 1):
-            term = pts[k] if _M5[j][k] == 1 else _M5[j][k] * pts[k]
-            acc = term if acc is None else acc + term
-        coef.append(acc)
     starts = jnp.stack([t0, t0 + duration[0]])
     w_all = jnp.stack([rotation.w1, rotation.w2, rotation.w3], axis=1)  # (2, 3, 3)
     n, inv_n = _vnorm_inv(w_all)
-    pieces = jnp.concatenate([starts[:, None], (starts + duration)[:, None], (1 / duration)[:, None],
-                              jnp.concatenate(coef, axis=-1), rotation.q0, w_all.reshape(2, 9),
-                              n, inv_n], axis=-1)
+    col = lambda x: x[:, None]  # noqa: E731
+    pieces = jnp.concatenate([col(starts), col(starts + duration), col(duration), col(1 / duration),
+                              curve._power(0).reshape(2, 18), rotation.q0, w_all.reshape(2, 9), n,
+                              inv_n, curve.A0, curve.A1, curve.A2,
+                              curve.control_points.reshape(2, 18)], axis=-1)
     n_end, inv_n_end = _vnorm_inv(w_end)
     stop = jnp.asarray(config.stop_time, dtype)
     parts = [pieces.reshape(2 * _PIECE), started.astype(dtype)[None], p_end, v_end, q_end, w_end,
              (n_end / 2)[None], inv_n_end[None], jnp.asarray(config.coast_time, dtype)[None],
              stop[None], (1 / stop)[None]]
     render = jnp.concatenate([jnp.asarray(x, dtype) for x in parts])
-    return TrackerState(kf, t0, duration, curve, rotation, started, render)
+    return TrackerState(kf, t0, started, render)
 
 
 def _segment(p0, v0, q0, w0, p1, v1, q1, w1, duration):
