@@ -122,7 +122,7 @@ class Trajectory(NamedTuple):
     unpacking semantics intact); the number of samples is :attr:`num_samples`.
     """
 
-    times: Float[np.ndarray, "n"]
+    times: Float[np.ndarray, " n"]
     positions: Float[np.ndarray, "n 3"]
     quaternions: Float[np.ndarray, "n 4"]
 
@@ -141,7 +141,7 @@ class Trajectory(NamedTuple):
     @classmethod
     def from_arrays(
         cls,
-        times: Float[Any, "n"],
+        times: Float[Any, " n"],
         quaternions: Float[Any, "n 4"],
         positions: Float[Any, "n 3"] | None = None,
     ) -> Trajectory:

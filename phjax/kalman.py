@@ -521,26 +521,32 @@ def kalman_update(
         initialized=state.initialized,
         last_update=jnp.where(pos_ok | rot_ok, state.t, state.last_update),
     )
-    init = kalman_init(config, state.t, p_meas, q_meas)
-    init_time = jnp.where(init.initialized, state.t, state.last_update)
-    init = eqx.tree_at(lambda s: s.last_update, init, init_time)
-    new_state = _select(state.initialized, updated, init)
+    return _finish(config, state, state.t, updated, p_meas, q_meas, (pos_valid, rot_valid),
+                   (pos_ok, rot_ok), (y_pos, y_rot), (s_pos, s_rot), (r_pos, r_rot), (nis_pos, nis_rot))
 
+
+def _finish(config, state, t, updated, p_meas, q_meas, valid, ok, innovation, cov, r, nis):
+    """The step's result: ``updated`` for an initialised ``state``, else a state initialised
+    from the measurement at ``t``; and the :class:`KalmanInfo` (pairs: position, orientation)."""
+    init = kalman_init(config, t, p_meas, q_meas)
+    init_time = jnp.where(init.initialized, t, state.last_update)
+    init = eqx.tree_at(lambda s: s.last_update, init, init_time)
     was_init = state.initialized
+    new_state = _select(was_init, updated, init)
     init_now = ~was_init & init.initialized
-    zero3 = jnp.zeros(3, dtype)
-    zero = jnp.zeros((), dtype)
+    zero3 = jnp.zeros(3, updated.x.dtype)
+    zero = jnp.zeros((), updated.x.dtype)
     info = KalmanInfo(
-        pos_innovation=jnp.where(was_init, y_pos, zero3),
-        rot_innovation=jnp.where(was_init, y_rot, zero3),
-        pos_innovation_cov=jnp.where(was_init, s_pos, r_pos),
-        rot_innovation_cov=jnp.where(was_init, s_rot, r_rot),
-        pos_nis=jnp.where(was_init & pos_valid, nis_pos, zero),
-        rot_nis=jnp.where(was_init & rot_valid, nis_rot, zero),
-        pos_valid=pos_valid,
-        rot_valid=rot_valid,
-        pos_used=jnp.where(was_init, pos_ok, init_now),
-        rot_used=jnp.where(was_init, rot_ok, init_now),
+        pos_innovation=jnp.where(was_init, innovation[0], zero3),
+        rot_innovation=jnp.where(was_init, innovation[1], zero3),
+        pos_innovation_cov=jnp.where(was_init, cov[0], r[0]),
+        rot_innovation_cov=jnp.where(was_init, cov[1], r[1]),
+        pos_nis=jnp.where(was_init & valid[0], nis[0], zero),
+        rot_nis=jnp.where(was_init & valid[1], nis[1], zero),
+        pos_valid=valid[0],
+        rot_valid=valid[1],
+        pos_used=jnp.where(was_init, ok[0], init_now),
+        rot_used=jnp.where(was_init, ok[1], init_now),
         initialized_now=init_now,
     )
     return new_state, info
@@ -727,29 +733,10 @@ def _kalman_step_separable(config: KalmanConfig, state: KalmanState, t, position
         initialized=init_ok,
         last_update=jnp.where(pos_ok | rot_ok, t_new, state.last_update),
     )
-    init = kalman_init(config, t_new, p_meas, q_meas)
-    init_time = jnp.where(init.initialized, t_new, state.last_update)
-    init = eqx.tree_at(lambda s_: s_.last_update, init, init_time)
-    new_state = _select(init_ok, updated, init)
-
-    init_now = ~init_ok & init.initialized
-    zero3 = jnp.zeros(3, dtype)
-    zero = jnp.zeros((), dtype)
-    r_pos_m = r_pos * eye
-    info = KalmanInfo(
-        pos_innovation=jnp.where(init_ok, y_pos, zero3),
-        rot_innovation=jnp.where(init_ok, y_rot, zero3),
-        pos_innovation_cov=jnp.where(init_ok, jnp.where(eye > 0, s_pos, 0), r_pos_m),
-        rot_innovation_cov=jnp.where(init_ok, s_rot, r_rot * eye),
-        pos_nis=jnp.where(init_ok & pos_valid, nis_pos, zero),
-        rot_nis=jnp.where(init_ok & rot_valid, nis_rot, zero),
-        pos_valid=pos_valid,
-        rot_valid=rot_valid,
-        pos_used=jnp.where(init_ok, pos_ok, init_now),
-        rot_used=jnp.where(init_ok, rot_ok, init_now),
-        initialized_now=init_now,
-    )
-    return new_state, info
+    r_pos_m, r_rot_m = r_pos * eye, r_rot * eye
+    return _finish(config, state, t_new, updated, p_meas, q_meas, (pos_valid, rot_valid),
+                   (pos_ok, rot_ok), (y_pos, y_rot), (jnp.where(eye > 0, s_pos, 0), s_rot),
+                   (r_pos_m, r_rot_m), (nis_pos, nis_rot))
 
 
 @jax.jit

@@ -80,6 +80,14 @@ class QuaternionHermite(eqx.Module):
         return 2 * omega / dur
 
 
+def _hermite_factors(q0, q1, w0, w1, duration):
+    """``(w1, mid, w3)`` of :func:`quaternion_hermite` before the shortest-arc flip of the
+    middle rotation ``mid = exp(-w3) q1 q0* exp(-w1)`` (``duration`` broadcasts with ``w0``)."""
+    a = duration * w0 / 6
+    c = duration * w1 / 6
+    return a, quat_mul(quat_mul(quat_exp(-c), quat_mul(q1, quat_conj(q0))), quat_exp(-a)), c
+
+
 def quaternion_hermite(
     q0: Float[ArrayLike, "*batch 4"],
     q1: Float[ArrayLike, "*batch 4"],
@@ -101,9 +109,7 @@ def quaternion_hermite(
     dtype = jnp.result_type(float, q0, q1, w0, w1)
     q0, q1, w0, w1 = (x.astype(dtype) for x in (q0, q1, w0, w1))
     duration = jnp.asarray(duration, dtype)
-    a = duration[..., None] * w0 / 6
-    c = duration[..., None] * w1 / 6
-    mid = quat_mul(quat_mul(quat_exp(-c), quat_mul(q1, quat_conj(q0))), quat_exp(-a))
+    a, mid, c = _hermite_factors(q0, q1, w0, w1, duration[..., None])
     mid = jnp.where(mid[..., :1] < 0, -mid, mid)  # shortest arc
     b = quat_log(mid)
     batch = jnp.broadcast_shapes(q0.shape[:-1], b.shape[:-1], duration.shape)

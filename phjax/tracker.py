@@ -22,7 +22,11 @@ smooth pose at any render time:
   time constant ``stop_time`` (C1) so the pose comes to rest: it never runs away.
 
 Streaming API (jitted, static shapes, no recompilation per frame): :func:`tracker_init`,
-:func:`tracker_update` at camera rate, :func:`tracker_sample` at render rate.
+:func:`tracker_update` at camera rate, :func:`tracker_sample` at render rate. For the lowest
+latency pass a config converted once with :func:`tracker_config_arrays` and, on a CPU, turn off
+JAX's asynchronous dispatch at program start (``jax.config.update(
+"jax_cpu_enable_async_dispatch", False)``): for calls this short the hand-off to a worker
+thread costs more than the computation (see ``benchmarks/bench_tracker.py``).
 Batch API: :func:`track` runs the causal stream over a recording in one ``lax.scan`` (the output
 at render time ``tau`` depends only on measurements with ``t <= tau``), and :func:`reconstruct`
 the offline version (RTS-smoothed states joined by PH quintic / C1 quaternion segments).
@@ -50,11 +54,10 @@ from .kalman import (
     predict_pose,
     rts_smooth,
 )
-from .orientation import QuaternionHermite, quaternion_hermite
+from .orientation import QuaternionHermite, _hermite_factors, quaternion_hermite
 from .ph_quintic import PHQuintic, hermite_quintic
 from .quaternion import (
     quat_conj,
-    quat_exp,
     quat_from_rotvec,
     quat_mul,
     quat_normalize,
@@ -65,6 +68,7 @@ __all__ = [
     "TrackerConfig",
     "TrackerState",
     "tracker_init",
+    "tracker_config_arrays",
     "tracker_update",
     "tracker_sample",
     "track",
@@ -106,33 +110,45 @@ class TrackerState(eqx.Module):
 
     Fields:
         filter: the Kalman filter state.
-        t0: time of the last segment start (the last camera frame used), s.
-        started: whether a valid measurement has been seen (before that samples are NaN).
-        render: the current segment packed in one vector (layout ``_R``): per piece its start,
-            end, duration and reciprocal duration, its position curve (quaternion coefficients,
-            Bezier control points and power basis) and its rotation curve with the norms and
-            reciprocal norms of the increments; then ``started``, the end pose and velocities
-            and the coasting parameters of the config of the last update. Few arrays cross the
-            jit boundary (each costs dispatch time), and :func:`tracker_sample` passes this
-            single array to a kernel of a few fused operations.
+        render: everything a render sample needs, packed in three vectors (layouts ``_P``,
+            ``_P``, ``_R``): per piece of the current segment its start, end, duration and
+            reciprocal duration, the power basis of its position curve and its rotation curve
+            with the norms and reciprocal norms of the increments; then ``started``, the end
+            pose and velocities and the coasting parameters of the config of the last update.
+            :func:`tracker_sample` passes these to a kernel of a few fused operations.
+        shape: the PH form of the two position pieces, ``(2, 30)`` (layout ``_C``: quaternion
+            coefficients ``A0, A1, A2`` and Bezier control points).
 
-    Properties (views of ``render``): ``duration`` (2,), the durations of the segment's two
-    pieces, s; ``curve``, the two position pieces (a :class:`PHQuintic` batch of 2), each on its
-    own parameter ``(t - start) / duration``; ``rotation``, the two orientation pieces (a
+    The state is split into arrays of at most 64 elements on purpose: XLA's CPU runtime runs
+    the kernels of a compiled function one after the other in the calling thread only when
+    every buffer it touches has at most 512 bytes, and otherwise hands them to its thread pool,
+    which costs several microseconds per kernel (measured: 11 small additions take 21 us
+    sequentially, 87 us once one operand has 129 floats). Few arrays still cross the jit
+    boundary (each output costs about 1.4 us).
+
+    Properties (views): ``t0``, the time of the last segment start (the last camera frame
+    used), s; ``started``, whether a valid measurement has been seen (before that samples are
+    NaN); ``duration`` (2,), the durations of the segment's two pieces, s;
+    ``curve``, the two position pieces (a :class:`PHQuintic` batch of 2), each on its own
+    parameter ``(t - start) / duration``; ``rotation``, the two orientation pieces (a
     :class:`QuaternionHermite` batch of 2).
     """
 
     filter: KalmanState
-    t0: Float[Array, ""]
-    started: Bool[Array, ""]
-    render: Float[Array, " R"]
-
-    def _pieces(self):
-        return self.render[: 2 * _PIECE].reshape(2, _PIECE)
+    render: tuple[Float[Array, " P"], Float[Array, " P"], Float[Array, " R"]]
+    shape: Float[Array, "2 30"]
 
     def _field(self, name):
         a, b = _P[name]
-        return self._pieces()[:, a:b]
+        return jnp.stack([self.render[0][a:b], self.render[1][a:b]])
+
+    @property
+    def t0(self) -> Float[Array, ""]:
+        return self.render[0][_P["t0"][0]]
+
+    @property
+    def started(self) -> Bool[Array, ""]:
+        return self.render[2][_R["started"][0]] > 0
 
     @property
     def duration(self) -> Float[Array, "2"]:
@@ -140,8 +156,8 @@ class TrackerState(eqx.Module):
 
     @property
     def curve(self) -> PHQuintic:
-        f = self._field
-        return PHQuintic(A0=f("A0"), A1=f("A1"), A2=f("A2"), control_points=f("cp").reshape(2, 6, 3))
+        f = {k: self.shape[:, a:b] for k, (a, b) in _C.items()}
+        return PHQuintic(A0=f["A0"], A1=f["A1"], A2=f["A2"], control_points=f["cp"].reshape(2, 6, 3))
 
     @property
     def rotation(self) -> QuaternionHermite:
@@ -149,20 +165,20 @@ class TrackerState(eqx.Module):
         return QuaternionHermite(q0=f("q0"), w1=f("w1"), w2=f("w2"), w3=f("w3"), duration=self.duration)
 
 
-# layout of TrackerState.render: two piece blocks, then the common part. The per-piece
+# layout of TrackerState.render: one block per piece, then the common part. The per-piece
 # constants are precomputed at update time so that a sample costs few XLA ops: the reciprocal
 # of the duration and, for each exponential of the rotation curve ``exp(b w)`` (``b >= 0``),
 # the norm ``n = |w|`` and ``1/n`` (0 at 0), so that ``exp(b w) = (cos(b n), sin(b n)/n w)``
 # needs one sin/cos of a small vector and no division.
 _PIECE_LAYOUT = (("t0", 1), ("t_end", 1), ("dur", 1), ("inv_dur", 1), ("coef", 18), ("q0", 4),
-                 ("w1", 3), ("w2", 3), ("w3", 3), ("n", 3), ("inv_n", 3), ("A0", 4), ("A1", 4),
-                 ("A2", 4), ("cp", 18))
+                 ("w1", 3), ("w2", 3), ("w3", 3), ("n", 3), ("inv_n", 3))
 _COMMON_LAYOUT = (("started", 1), ("p_end", 3), ("v_end", 3), ("q_end", 4), ("w_end", 3),
                   ("n_end", 1), ("inv_n_end", 1), ("coast", 1), ("stop", 1), ("inv_stop", 1))
+_CURVE_LAYOUT = (("A0", 4), ("A1", 4), ("A2", 4), ("cp", 18))
 
 
-def _offsets(layout, off=0):
-    out = {}
+def _offsets(layout):
+    out, off = {}, 0
     for name, n in layout:
         out[name] = (off, off + n)
         off += n
@@ -170,7 +186,9 @@ def _offsets(layout, off=0):
 
 
 _P, _PIECE = _offsets(_PIECE_LAYOUT)
-_R, _RENDER_SIZE = _offsets(_COMMON_LAYOUT, 2 * _PIECE)
+_R, _COMMON = _offsets(_COMMON_LAYOUT)
+_C, _CURVE = _offsets(_CURVE_LAYOUT)
+
 
 def _vnorm_inv(v):
     """``(|v|, 1/|v|)`` of 3-vectors (``1/|v| = 0`` at 0), finite gradients at 0."""
@@ -181,28 +199,31 @@ def _vnorm_inv(v):
 
 
 def _make_state(config, kf, t0, duration, curve, rotation, started, ends) -> TrackerState:
-    """A :class:`TrackerState` with the packed render vector of its two pieces.
+    """A :class:`TrackerState` with the packed render vectors of its two pieces.
 
     ``ends = (p_end, v_end, q_end, w_end)``: the end pose and velocities of the second piece,
     i.e. the Hermite data it was built from (``q_end`` with the sign of its ``rotation(1)``).
     """
     p_end, v_end, q_end, w_end = ends
     dtype = t0.dtype
-    starts = jnp.stack([t0, t0 + duration[0]])
+    starts = (t0, t0 + duration[0])
     w_all = jnp.stack([rotation.w1, rotation.w2, rotation.w3], axis=1)  # (2, 3, 3)
     n, inv_n = _vnorm_inv(w_all)
-    col = lambda x: x[:, None]  # noqa: E731
-    pieces = jnp.concatenate([col(starts), col(starts + duration), col(duration), col(1 / duration),
-                              curve._power(0).reshape(2, 18), rotation.q0, w_all.reshape(2, 9), n,
-                              inv_n, curve.A0, curve.A1, curve.A2,
-                              curve.control_points.reshape(2, 18)], axis=-1)
+    coef = curve._power(0)  # (2, 6, 3)
+
+    def piece(i):  # built per piece: no temporary beyond 64 elements (see TrackerState)
+        return jnp.concatenate([jnp.stack([starts[i], starts[i] + duration[i], duration[i],
+                                           1 / duration[i]]), coef[i].reshape(18),
+                                rotation.q0[i], w_all[i].reshape(9), n[i], inv_n[i]])
+
     n_end, inv_n_end = _vnorm_inv(w_end)
     stop = jnp.asarray(config.stop_time, dtype)
-    parts = [pieces.reshape(2 * _PIECE), started.astype(dtype)[None], p_end, v_end, q_end, w_end,
-             (n_end / 2)[None], inv_n_end[None], jnp.asarray(config.coast_time, dtype)[None],
-             stop[None], (1 / stop)[None]]
-    render = jnp.concatenate([jnp.asarray(x, dtype) for x in parts])
-    return TrackerState(kf, t0, started, render)
+    parts = [started.astype(dtype)[None], p_end, v_end, q_end, w_end, (n_end / 2)[None],
+             inv_n_end[None], jnp.asarray(config.coast_time, dtype)[None], stop[None],
+             (1 / stop)[None]]
+    common = jnp.concatenate([jnp.asarray(x, dtype) for x in parts])
+    shape = jnp.concatenate([curve.A0, curve.A1, curve.A2, curve.control_points.reshape(2, 18)], -1)
+    return TrackerState(kf, (piece(0), piece(1), common), shape)
 
 
 def _segment(p0, v0, q0, w0, p1, v1, q1, w1, duration):
@@ -216,11 +237,9 @@ def _rotation_end(q0, q1, w0, w1, duration):
     """``quaternion_hermite(q0, q1, w0, w1, duration).rotation(1)`` without evaluating it.
 
     The curve ends at ``q1`` or ``-q1``: ``-q1`` exactly when the middle factor was flipped to its
-    shortest arc (same expressions as :func:`quaternion_hermite`, shared by XLA's CSE).
+    shortest arc (the same factors as :func:`quaternion_hermite`, shared by XLA's CSE).
     """
-    a = duration * w0 / 6
-    c = duration * w1 / 6
-    mid = quat_mul(quat_mul(quat_exp(-c), quat_mul(q1, quat_conj(q0))), quat_exp(-a))
+    _, mid, _ = _hermite_factors(q0, q1, w0, w1, duration)
     return jnp.where(mid[..., :1] < 0, -q1, q1)
 
 
@@ -244,6 +263,24 @@ def tracker_init(config: TrackerConfig | None = None, t: float = 0.0, dtype=None
     curve, rot = _segment(z3, z3, q, z3, z3, z3, q, z3, dur)
     return _make_state(config, kf, jnp.asarray(t, dtype), dur, curve, rot, jnp.asarray(False),
                        (z3[0], z3[0], q[0], z3[0]))
+
+
+def tracker_config_arrays(config: TrackerConfig | None = None, dtype=None) -> TrackerConfig:
+    """The config with its numeric leaves as device arrays: convert once, outside the loop.
+
+    :func:`tracker_update` traces the config, so Python-float leaves are converted to device
+    arrays on every call (about 1.5 us each on a CPU). Same results as the original config.
+
+    Arguments:
+        config: tracker configuration (default :class:`TrackerConfig()`).
+        dtype: floating dtype of the leaves; use the state's (default: JAX's default float).
+
+    Returns:
+        A :class:`TrackerConfig` whose leaves are 0-d arrays.
+    """
+    config = TrackerConfig() if config is None else config
+    dtype = jnp.zeros((), dtype=dtype if dtype is not None else float).dtype
+    return jax.tree.map(lambda x: jnp.asarray(x, dtype), config)
 
 
 def _evaluate(config: TrackerConfig, state: TrackerState, tau, velocities: bool = True):
@@ -273,17 +310,18 @@ def _rotate_c(q, v):
 
 
 def _eval_render(render, tau, velocities: bool = True):
-    """Pose (and velocities) of the packed render vector at time(s) ``tau`` (see ``_R``).
+    """Pose (and velocities) of the packed render vectors ``(first piece, second piece,
+    common)`` at time(s) ``tau`` (layouts ``_P`` and ``_R``).
 
     Selects the piece that covers ``tau`` (the second from its start on), then evaluates it
     on scalar components with the transcendental functions of one sample gathered in one sin,
     one cos and one exp, so that XLA compiles it to a handful of fused kernels.
     """
-    dtype = render.dtype
+    first, second, common = render
+    dtype = common.dtype
     tau = jnp.asarray(tau, dtype)
-    first, second = render[:_PIECE], render[_PIECE:2 * _PIECE]
     pc = jnp.where((tau >= second[0])[..., None], second, first)  # (*T, _PIECE)
-    r = {k: render[a:b] for k, (a, b) in _R.items()}
+    r = {k: common[a:b] for k, (a, b) in _R.items()}
     g = lambda k, i=0: r[k][i]  # noqa: E731
     gp = lambda k, i=0: pc[..., _P[k][0] + i]  # noqa: E731
     t0, inv_dur = gp("t0"), gp("inv_dur")
@@ -356,7 +394,7 @@ def _settle(s):
 
 
 def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion):
-    dtype = state.t0.dtype
+    dtype = state.render[2].dtype
     t = jnp.maximum(jnp.asarray(t, dtype), state.filter.t)  # late measurements: applied now
     position = jnp.asarray(position, dtype)
     quaternion = jnp.asarray(quaternion, dtype)

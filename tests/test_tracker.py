@@ -139,6 +139,28 @@ def test_track_equals_streaming_loop(head):
     assert tracker._sample_render._cache_size() == 1
 
 
+def test_config_arrays_and_small_state_buffers(head):
+    """``tracker_config_arrays`` gives the updates of the float config (one compile each for
+    all frames); every state array has at most 64 elements (XLA's CPU runtime runs a call's
+    kernels in the calling thread only when every buffer has at most 512 bytes)."""
+    _, _, _, mt, mp, mq = head
+    cfg = pj.TrackerConfig()
+    cfga = pj.tracker_config_arrays(cfg, jnp.float64)
+    assert all(isinstance(x, jax.Array) and x.dtype == jnp.float64 for x in jax.tree.leaves(cfga))
+    s1 = s2 = pj.tracker_init(cfg, 0.0, jnp.float64)
+    n0 = tracker.tracker_update._cache_size()
+    for k in range(25):
+        t = mt[k] - mt[0]
+        s1 = pj.tracker_update(cfg, s1, t, mp[k], mq[k])
+        s2 = pj.tracker_update(cfga, s2, t, mp[k], mq[k])
+        for a, b in zip(jax.tree.leaves(s1), jax.tree.leaves(s2)):
+            np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-12, atol=1e-12)
+        if np.all(np.isfinite(mp[k])) or np.all(np.isfinite(mq[k])):
+            assert float(s2.t0) == pytest.approx(t) and bool(s2.started)
+    assert tracker.tracker_update._cache_size() - n0 <= 2
+    assert max(x.size for x in jax.tree.leaves(s2)) <= 64
+
+
 def test_causality(head):
     _, _, _, mt, mp, mq = head
     r = np.linspace(mt[0], mt[-1], 500)
