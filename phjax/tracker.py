@@ -542,11 +542,11 @@ def _track_core(config, times, positions, quaternions, render_times):
     def body(state, meas):
         t, p, q = meas
         new = _update(config, state, t, p, q)
-        return new, new
+        return new, new.render  # only what a render sample reads is stacked and gathered
 
-    _, states = jax.lax.scan(body, state0, (times, positions, quaternions))
-    sel, before = _latest_states(times, states, render_times)
-    p, _, q, _ = jax.vmap(lambda s, tau: _evaluate(config, s, tau, velocities=False))(sel, render_times)
+    _, renders = jax.lax.scan(body, state0, (times, positions, quaternions))
+    sel, before = _latest_states(times, renders, render_times)
+    p, _, q, _ = jax.vmap(lambda r, tau: _eval_render(r, tau, velocities=False))(sel, render_times)
     nan = jnp.where(before, jnp.nan, 0.0)[:, None].astype(dtype)
     return p + nan, q + nan
 
