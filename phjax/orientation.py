@@ -81,8 +81,10 @@ class QuaternionHermite(eqx.Module):
 
 
 def _hermite_factors(q0, q1, w0, w1, duration):
-    """``(w1, mid, w3)`` of :func:`quaternion_hermite` before the shortest-arc flip of the
-    middle rotation ``mid = exp(-w3) q1 q0* exp(-w1)`` (``duration`` broadcasts with ``w0``)."""
+    """``(a, mid, c)``: the first and last increments ``a = T w0 / 6``, ``c = T w1 / 6`` of
+    :func:`quaternion_hermite` (its fields ``w1``, ``w3``) and the middle rotation
+    ``mid = exp(-c) q1 q0* exp(-a)`` before its shortest-arc flip (``duration`` ``T``
+    broadcasts with ``w0``)."""
     a = duration * w0 / 6
     c = duration * w1 / 6
     return a, quat_mul(quat_mul(quat_exp(-c), quat_mul(q1, quat_conj(q0))), quat_exp(-a)), c

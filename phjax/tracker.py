@@ -178,16 +178,17 @@ _CURVE_LAYOUT = (("A0", 4), ("A1", 4), ("A2", 4), ("cp", 18))
 
 
 def _offsets(layout):
+    """``{name: (start, stop)}`` of the fields of a packed layout."""
     out, off = {}, 0
     for name, n in layout:
         out[name] = (off, off + n)
         off += n
-    return out, off
+    return out
 
 
-_P, _PIECE = _offsets(_PIECE_LAYOUT)
-_R, _COMMON = _offsets(_COMMON_LAYOUT)
-_C, _CURVE = _offsets(_CURVE_LAYOUT)
+_P = _offsets(_PIECE_LAYOUT)
+_R = _offsets(_COMMON_LAYOUT)
+_C = _offsets(_CURVE_LAYOUT)
 
 
 def _vnorm_inv(v):
@@ -243,6 +244,11 @@ def _rotation_end(q0, q1, w0, w1, duration):
     return jnp.where(mid[..., :1] < 0, -q1, q1)
 
 
+def _float_dtype(dtype):
+    """``dtype``, or JAX's default float dtype for ``None``."""
+    return jnp.zeros((), dtype=dtype if dtype is not None else float).dtype
+
+
 def tracker_init(config: TrackerConfig | None = None, t: float = 0.0, dtype=None) -> TrackerState:
     """An empty tracker state (no measurement yet).
 
@@ -255,7 +261,7 @@ def tracker_init(config: TrackerConfig | None = None, t: float = 0.0, dtype=None
         A :class:`TrackerState` whose samples are NaN until the first valid update.
     """
     config = TrackerConfig() if config is None else config
-    dtype = jnp.zeros((), dtype=dtype if dtype is not None else float).dtype
+    dtype = _float_dtype(dtype)
     kf = kalman_uninitialized(config.kalman, jnp.asarray(t, dtype), dtype)
     z3 = jnp.zeros((2, 3), dtype)
     q = jnp.broadcast_to(jnp.asarray([1.0, 0, 0, 0], dtype), (2, 4))
@@ -279,7 +285,7 @@ def tracker_config_arrays(config: TrackerConfig | None = None, dtype=None) -> Tr
         A :class:`TrackerConfig` whose leaves are 0-d arrays.
     """
     config = TrackerConfig() if config is None else config
-    dtype = jnp.zeros((), dtype=dtype if dtype is not None else float).dtype
+    dtype = _float_dtype(dtype)
     return jax.tree.map(lambda x: jnp.asarray(x, dtype), config)
 
 
@@ -320,7 +326,7 @@ def _eval_render(render, tau, velocities: bool = True):
     first, second, common = render
     dtype = common.dtype
     tau = jnp.asarray(tau, dtype)
-    pc = jnp.where((tau >= second[0])[..., None], second, first)  # (*T, _PIECE)
+    pc = jnp.where((tau >= second[0])[..., None], second, first)  # (*T, piece size)
     r = {k: common[a:b] for k, (a, b) in _R.items()}
     g = lambda k, i=0: r[k][i]  # noqa: E731
     gp = lambda k, i=0: pc[..., _P[k][0] + i]  # noqa: E731
