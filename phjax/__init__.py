@@ -80,6 +80,7 @@ from .tracker import (
     tracker_sample,
     tracker_update,
 )
+from .stream import TrackerStream
 
 __version__ = "0.1.0"
 
@@ -150,6 +151,7 @@ __all__ = [
     "synthetic_head_motion",
     "TrackerConfig",
     "TrackerState",
+    "TrackerStream",
     "reconstruct",
     "track",
     "tracker_config_arrays",

@@ -22,11 +22,13 @@ smooth pose at any render time:
   time constant ``stop_time`` (C1) so the pose comes to rest: it never runs away.
 
 Streaming API (jitted, static shapes, no recompilation per frame): :func:`tracker_init`,
-:func:`tracker_update` at camera rate, :func:`tracker_sample` at render rate. For the lowest
-latency pass a config converted once with :func:`tracker_config_arrays` and, on a CPU, turn off
-JAX's asynchronous dispatch at program start (``jax.config.update(
-"jax_cpu_enable_async_dispatch", False)``): for calls this short the hand-off to a worker
-thread costs more than the computation (see ``benchmarks/bench_tracker.py``).
+:func:`tracker_update` at camera rate, :func:`tracker_sample` at render rate. A host-side render
+loop gets the lowest latency from :class:`phjax.TrackerStream` (the same update on a packed
+state: few buffers cross the jit boundary) and, on a CPU, with JAX's asynchronous dispatch
+turned off at program start (``jax.config.update("jax_cpu_enable_async_dispatch", False)``):
+for calls this short the hand-off to a worker thread costs more than the computation (see
+``benchmarks/bench_tracker.py``). Calling the pure functions directly, pass a config converted
+once with :func:`tracker_config_arrays`.
 Batch API: :func:`track` runs the causal stream over a recording in one ``lax.scan`` (the output
 at render time ``tau`` depends only on measurements with ``t <= tau``), and :func:`reconstruct`
 the offline version (RTS-smoothed states joined by PH quintic / C1 quaternion segments).
