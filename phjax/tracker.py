@@ -402,6 +402,10 @@ def _settle(s):
 
 
 def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion):
+    # shapes are static: checked once per compilation, not per call
+    for name, x, shape in (("t", t, ()), ("position", position, (3,)), ("quaternion", quaternion, (4,))):
+        if jnp.shape(x) != shape:
+            raise ValueError(f"tracker update: {name} must have shape {shape}, got {jnp.shape(x)}")
     dtype = state.render[2].dtype
     t = jnp.maximum(jnp.asarray(t, dtype), state.filter.t)  # late measurements: applied now
     position = jnp.asarray(position, dtype)

@@ -122,3 +122,15 @@ def test_stream_is_the_track_scan(meas):
         P[j], Q[j] = np.asarray(p), np.asarray(q)
     np.testing.assert_allclose(P, P_ref, atol=1e-12)
     np.testing.assert_allclose(Q, Q_ref, atol=1e-12)
+
+
+@pytest.mark.parametrize("bad", [dict(position=np.zeros(4)), dict(quaternion=np.ones(3)),
+                                 dict(t=np.zeros(2)), dict(position=0.5)])
+def test_bad_shapes_raise_clear_errors(bad):
+    args = dict(t=0.0, position=np.zeros(3), quaternion=np.array([1.0, 0, 0, 0])) | bad
+    s = pj.TrackerStream(dtype=jnp.float64)
+    with pytest.raises(ValueError, match="must have shape"):
+        s.update(args["t"], args["position"], args["quaternion"])
+    with pytest.raises(ValueError, match="must have shape"):
+        pj.tracker_update(pj.TrackerConfig(), pj.tracker_init(), args["t"], args["position"],
+                          args["quaternion"])
