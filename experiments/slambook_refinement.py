@@ -1,13 +1,13 @@
-"""Relative camera poses on the slambook2 chapter-5 RGB-D frames: feature RANSAC alone, with
-the dense ICP refinement (``rgbd_relative_pose(refine="icp")``), with the joint dense +
+"""Relative camera poses on the slambook2 chapter-5 RGB-D frames: feature RANSAC alone
+(``refine=None``), with the dense ICP refinement (``refine="icp"``), with the joint dense +
 feature refinement (``refine="joint"``, the RANSAC inliers as 3-D point pairs weighted by their
-noise model) and with the joint dense + reprojection refinement (``REPROJ``:
-``DenseRefinement(feature_weight=1, feature_residual="pixel", feature_matches="all")``, all
-descriptor matches as 2-D reprojection residuals with a gated Tukey loss, re-selected every
-iteration), against the given (approximate) poses, per RANSAC seed; sensitivity tables over
-the relative feature weight (``--weights``, of ``--variant``) and the Tukey scale of the
-reprojection variant; optionally ``cv2.Odometry`` (OpenCV 5, DEPTH / RGB / RGB_DEPTH) as an
-independent reference.
+noise model) and with the default joint dense + reprojection refinement (``refine="reproj"``:
+all descriptor matches as 2-D reprojection residuals with a gated Tukey loss, re-selected every
+iteration, the dense information corrected for the sensor's 9 x 7 depth correlation window),
+against the given (approximate) poses, per RANSAC seed; sensitivity tables over the depth
+correlation window (``--windows``), the relative feature weight (``--weights``, of
+``--variant``) and the Tukey scale of the reprojection refinement; optionally ``cv2.Odometry``
+(OpenCV 5, DEPTH / RGB / RGB_DEPTH) as an independent reference.
 
 ``cv2.Odometry.compute`` takes no initial guess and fails on these wide baselines (0.2-0.7 m,
 up to 25 degrees) when started from the identity, so frame ``a`` (depth + grey) is first
@@ -34,7 +34,7 @@ from phjax import rgbd_io as R
 from phjax.datasets import shared_data_dir
 
 
-REPROJ = H.DenseRefinement(feature_weight=1.0, feature_residual="pixel", feature_matches="all")
+REPROJ = H._REFINE_PRESETS["reproj"]  # the default refinement
 
 
 def _rot_deg(ra: np.ndarray, rb: np.ndarray) -> float:
@@ -102,6 +102,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=8, help="RANSAC seeds 0..N-1 (default 8)")
     ap.add_argument("--no-cv2", action="store_true", help="skip the cv2.Odometry reference")
+    ap.add_argument("--windows", nargs="*", default=["none", "9x7", "9x9"],
+                    help="depth correlation windows of the reproj table (WxH or none; none: "
+                         "independent dense residuals; empty: no table)")
     ap.add_argument("--weights", type=float, nargs="*", default=[0.1, 10, 100],
                     help="feature weights of the sensitivity table (none: no table)")
     ap.add_argument("--variant", choices=("reproj", "joint"), default="reproj",
@@ -109,7 +112,7 @@ def main(argv=None) -> int:
                          "all matches (default) or the RANSAC inliers as 3-D pairs")
     ap.add_argument("--scales", type=float, nargs="*", default=[2.0, 4.685],
                     help="Tukey scales (standard deviations) of the reprojection variant's "
-                         "table (default 3 in REPROJ; none: no table)")
+                         "table (default 3; none: no table)")
     ap.add_argument("--out", default="results/slambook_refinement")
     args = ap.parse_args(argv)
     base = shared_data_dir()
@@ -118,7 +121,7 @@ def main(argv=None) -> int:
     seq = R.open_rgbd(base / "rgbd_frames_slambook2_ch5")
     frames = [seq[i] for i in range(5)]
     seeds = range(args.seeds)
-    for refine in ("icp", "joint", REPROJ):  # compile outside the timings
+    for refine in ("icp", "joint", "reproj"):  # compile outside the timings
         H.rgbd_relative_pose(frames[3], frames[4], refine=refine)
     head = "| pair | stage | " + " | ".join(f"seed {s}" for s in seeds) + " | time / pair |"
     lines = ["# slambook2 ch5: relative camera pose errors (deg / cm) against pose.txt", "",
@@ -126,7 +129,7 @@ def main(argv=None) -> int:
     refined = {}
     for i in range(4):
         for stage, refine in (("RANSAC", None), ("RANSAC + ICP", "icp"),
-                              ("RANSAC + joint", "joint"), ("RANSAC + reproj", REPROJ)):
+                              ("RANSAC + joint", "joint"), ("RANSAC + reproj (default)", "reproj")):
             cells, times = [], []
             for s in seeds:
                 t0 = time.perf_counter()
@@ -140,15 +143,24 @@ def main(argv=None) -> int:
                          + f" | {np.median(times):.2f} s |")
             print(lines[-1], flush=True)
     tables = []
+    if args.windows:
+        def window(text):
+            return None if text == "none" else tuple(int(x) for x in text.split("x"))
+
+        tables.append(("reproj refinement, sensitivity to the depth correlation window "
+                       "(`depth_window`; none = independent dense residuals):",
+                       [(f"window {w}", dataclasses.replace(REPROJ, depth_window=window(w)))
+                        for w in args.windows]))
     if args.weights:
         base_cfg = REPROJ if args.variant == "reproj" else H.DenseRefinement(feature_weight=1.0)
         tables.append((f"{args.variant} refinement, sensitivity to the relative feature weight "
-                       "(`feature_weight=w`; 1 = noise models alone):",
+                       "(`feature_weight=w`, on top of the depth-window factor; 1 = noise "
+                       "models alone):",
                        [(f"w = {w:g}", dataclasses.replace(base_cfg, feature_weight=w))
                         for w in args.weights]))
     if args.scales:
         tables.append(("reproj refinement, sensitivity to the Tukey scale "
-                       "(`feature_loss_scale=c`, standard deviations; 3 in REPROJ):",
+                       "(`feature_loss_scale=c`, standard deviations; default 3):",
                        [(f"c = {c:g}", dataclasses.replace(REPROJ, feature_loss_scale=c))
                         for c in args.scales]))
     for title, cfgs in tables:

@@ -864,8 +864,9 @@ class DenseRefinement:
     covariance of its 3-D difference: lifted keypoints have ``pixel_noise`` (px) on ``u, v``
     and ``depth_noise z^2`` (m) along the ray in both frames (Kinect v1, Khoshelham & Elberink
     2012). The dense residuals are weighted by ``1 / sigma^2``, ``sigma`` their IRLS scale
-    estimate, so ``feature_weight = 1`` weighs both terms by their noise models alone
-    (treating the dense residuals as independent); larger values trust the features more.
+    estimate, so ``feature_weight = 1`` weighs both terms by their noise models alone (with
+    the correlation correction of ``depth_window`` below); larger values trust the features
+    more.
 
     ``feature_residual="pixel"`` uses 2-D reprojection residuals instead (``pixel_pairs`` of
     :func:`phjax.icp.icp_projective`): ``a``'s lifted keypoint, moved by the motion and
@@ -877,6 +878,15 @@ class DenseRefinement:
     (standard deviations) that is widened to the dense correspondence distance of the
     current iteration (``pair_gate`` / ``pixel_gate``): matches are re-selected every
     iteration as the schedule shrinks, so a wrong RANSAC consensus is not locked in.
+
+    ``depth_window = (w, h)`` (pixels; ``None``: independent residuals) corrects the dense
+    term's information for correlated depth noise: a Kinect-class structured-light sensor
+    computes each depth value by matching a correlation window of about 9 x 9 or 9 x 7 IR
+    pixels (ROS ``kinect_calibration`` technical notes), so neighbouring depths share most of
+    their error and a level whose source points are ``s`` pixels apart has about
+    ``max(1, w h / s^2)`` times fewer independent dense residuals than points. The feature
+    terms' weight is multiplied by that factor per level (default ``(9, 7)``, the smaller
+    window: the least correction; ``levels`` default: factors 1, 3.9 and 15.75).
     """
 
     levels: tuple[tuple[int, int], ...] = ((4, 8), (2, 4), (1, 2))
@@ -892,6 +902,7 @@ class DenseRefinement:
     feature_residual: str = "point"
     feature_matches: str = "inliers"
     feature_loss_scale: float = 3.0
+    depth_window: tuple[int, int] | None = (9, 7)
 
     def __post_init__(self):
         if self.feature_residual not in ("point", "pixel"):
@@ -907,6 +918,26 @@ class DenseRefinement:
         for st, ss in self.levels:
             if int(st) < 1 or int(ss) < 1:
                 raise ValueError(f"strides must be >= 1, got {(st, ss)}")
+        if self.depth_window is not None and (len(self.depth_window) != 2
+                                              or min(self.depth_window) < 1):
+            raise ValueError(f"depth_window must be None or (width, height) >= 1 pixels, got "
+                             f"{self.depth_window!r}")
+
+    def feature_factor(self, source_stride: int) -> float:
+        """Factor on the feature terms' weight at a level whose source points are
+        ``source_stride`` pixels apart (the dense residuals per depth correlation window)."""
+        if self.depth_window is None:
+            return 1.0
+        w, h = self.depth_window
+        return max(1.0, w * h / source_stride ** 2)
+
+
+#: the named refinements of :func:`rgbd_relative_pose`
+_REFINE_PRESETS = {
+    "reproj": DenseRefinement(feature_weight=1.0, feature_residual="pixel", feature_matches="all"),
+    "icp": DenseRefinement(),
+    "joint": DenseRefinement(feature_weight=1.0),
+}
 
 
 @functools.partial(jax.jit, static_argnames=("metric", "iterations", "depth_power",
@@ -961,6 +992,9 @@ def _dense_refine(depth_a, depth_b, k4, q0, t0, schedules, pairs, cfg: DenseRefi
     depth_a, depth_b = clip(depth_a), clip(depth_b)
     q, t, res = q0, t0, None
     for (st, ss), it, sched in zip(cfg.levels, cfg.iterations, schedules):
+        if sparse:  # correlated depth noise: fewer independent dense residuals than points
+            sparse["pair_weight" if "point_pairs" in sparse else "pixel_weight"] = \
+                cfg.feature_factor(ss)
         # pixel (i, j) of a stride-s subsampling is pixel (s i, s j): u / s = (fx / s) x / z + cx / s
         kt = k4 / st
         tp = backproject(depth_b[::st, ::st], kt)
@@ -982,7 +1016,7 @@ def rgbd_relative_pose(
     depth_power: float = 4.0,
     min_depth: float = 0.3, max_depth: float = 8.0, edge_abs: float = 0.01,
     edge_rel: float = 0.01, fast_threshold: int = 10, seed: int = 0,
-    refine: str | DenseRefinement | None = None,
+    refine: str | DenseRefinement | None = "reproj",
 ) -> RelativePose:
     """Rigid motion between two registered RGB-D frames from keypoint matches lifted to 3-D.
 
@@ -991,49 +1025,45 @@ def rgbd_relative_pose(
     inlier by ``1 / z^depth_power`` (triangulation depth noise grows like ``z^2``, so its
     variance like ``z^4``).
 
-    ``refine="icp"`` (or a :class:`DenseRefinement`) adds a dense stage started from the
-    RANSAC motion: coarse-to-fine point-to-plane ICP (:func:`phjax.icp.icp_projective`, JAX)
-    of all of ``a``'s depth onto ``b``'s, with a shrinking correspondence distance and a Tukey
-    loss. It is skipped when RANSAC failed, and its result is kept only when the last level
-    reports ``OK`` or ``NOT_CONVERGED`` (budget used up, the normal case); otherwise the RANSAC
-    motion is returned (``refined=False``). The refinement removes the dependence on the
-    RANSAC seed when few matches are consistent, but converges to the *depth-consistent*
-    motion. Measured on the slambook2 frames (Kinect, 0.2-0.7 m baselines, seeds 0-7, errors
-    against the given, approximate poses): 1 -> 2 goes from 1.4-4.7 degrees / 4.9-18 cm to
-    1.4 degrees / 2.8-3.1 cm, 2 -> 3 from 0.7-0.9 / 2.4-3.5 to 0.56 / 2.7-2.8, 4 -> 5 stays at
-    0.2 / 1.5, but 3 -> 4 goes from 0.4-1.8 / 2.9-20 to 1.2 degrees / 7.3-7.5 cm (a depth
-    odometry, ``cv2.Odometry`` DEPTH, lands 7.2 cm from the given pose as well, its colour
-    odometry 1-3 cm: there the depth and the given pose disagree). Hence it is off by
-    default. It adds 0.1-0.4 s per pair on 2 shared CPU cores (after a one-off compilation).
+    ``refine`` adds a dense stage started from the RANSAC motion (skipped when RANSAC failed;
+    its result is kept only when the last level reports ``OK`` or ``NOT_CONVERGED``, budget
+    used up, the normal case; otherwise the RANSAC motion is returned, ``refined=False``):
+    coarse-to-fine point-to-plane ICP (:func:`phjax.icp.icp_projective`, JAX) of all of
+    ``a``'s depth onto ``b``'s, with a shrinking correspondence distance and a Tukey loss, and
+    the feature matches in the same Gauss-Newton objective (see :class:`DenseRefinement`):
 
-    ``refine="joint"`` (``DenseRefinement(feature_weight=1.0)``) keeps the RANSAC inliers in
-    the objective as point pairs weighted by their noise model (see :class:`DenseRefinement`).
-    Same frames and seeds: 1 -> 2 1.0-1.4 degrees / 2.7-3.4 cm, 2 -> 3 0.63 / 2.7, 3 -> 4
-    0.9-1.0 / 6.1-6.5 cm, 4 -> 5 0.19 / 1.6, at the cost of the dense stage. No single weight
-    passes all four pairs for all seeds: 3 -> 4 needs a feature weight of about 100 (2-3 cm,
-    seed 6: 6 cm), where the few, partly wrong inliers of seeds 4 and 5 on 1 -> 2 pull it to
-    11-13 cm (10 cm already at weight 10). So it is opt-in too.
+    * ``"reproj"`` (default): 2-D reprojection residuals of *all* descriptor matches (``b``'s
+      accurate pixel positions instead of its noisy far depth; ``pixel_pairs`` of
+      :func:`phjax.icp.icp_projective`) with a Tukey loss whose gate shrinks with the dense
+      distance schedule, so matches are re-selected every iteration and a wrong RANSAC
+      consensus does not lock in; both terms weighted by their noise models, the dense one
+      corrected for the sensor's depth correlation window (``depth_window``).
+    * ``"joint"``: the RANSAC inliers as 3-D point pairs with lifted-keypoint covariances.
+    * ``"icp"``: the dense depth alone (converges to the *depth-consistent* motion).
+    * ``None``: RANSAC alone (fastest; depends on the seed when few matches are consistent).
 
-    ``refine=DenseRefinement(feature_weight=1.0, feature_residual="pixel",
-    feature_matches="all")`` uses 2-D reprojection residuals of *all* descriptor matches
-    instead (``pixel_pairs`` of :func:`phjax.icp.icp_projective`: ``b``'s accurate pixel
-    positions instead of its noisy far depth), with a Tukey loss whose gate shrinks with the
-    dense distance schedule, so matches are re-selected every iteration and a wrong RANSAC
-    consensus does not lock in. Same frames and seeds: every seed gives the same pose (within
-    0.01 degrees / 1 mm): 1 -> 2 1.3 degrees / 2.2 cm, 2 -> 3 0.70 / 2.7, 3 -> 4 0.78 / 5.4 cm,
-    4 -> 5 0.19 / 1.8; 3 -> 4 is still outside 5 cm, so this is opt-in as well.
+    Measured on the slambook2 frames (Kinect, 0.2-0.7 m baselines, RANSAC seeds 0-7, errors
+    against the given, approximate poses; ``experiments/slambook_refinement.py``): the default
+    gives the same pose for every seed, 1 -> 2 1.23 degrees / 3.2 cm, 2 -> 3 0.70 / 2.8,
+    3 -> 4 0.67 / 4.6, 4 -> 5 0.19 / 1.7; RANSAC alone 1.4-4.7 degrees / 4.9-18 cm on 1 -> 2 and
+    2.9-20 cm on 3 -> 4; ``"icp"`` 7.3-7.5 cm on 3 -> 4 (``cv2.Odometry`` DEPTH lands 7.2 cm
+    from the given pose as well, its colour odometry 1-3 cm: there the depth and the given
+    pose disagree); without the correlation correction (``depth_window=None``) ``"reproj"``
+    gives 5.4 cm on 3 -> 4, ``"joint"`` 6.1-6.5 cm (4.1-5.7 cm with it). The refinement adds
+    about 0.1-0.2 s per pair on 2 shared CPU cores (after a one-off compilation; RANSAC alone
+    0.13-0.2 s).
 
     Returns:
         A :class:`RelativePose` mapping points of ``a`` into ``b``.
     """
     if isinstance(refine, str):
-        if refine not in ("icp", "joint"):
-            raise ValueError("refine must be None, 'icp', 'joint' or a DenseRefinement, got "
-                             f"{refine!r}")
-        refine = DenseRefinement(feature_weight=1.0 if refine == "joint" else None)
+        if refine not in _REFINE_PRESETS:
+            raise ValueError("refine must be None, 'reproj', 'icp', 'joint' or a "
+                             f"DenseRefinement, got {refine!r}")
+        refine = _REFINE_PRESETS[refine]
     elif refine is not None and not isinstance(refine, DenseRefinement):
-        raise ValueError("refine must be None, 'icp', 'joint' or a DenseRefinement, got "
-                         f"{refine!r}")
+        raise ValueError("refine must be None, 'reproj', 'icp', 'joint' or a DenseRefinement, "
+                         f"got {refine!r}")
     kw = {"method": method, "max_keypoints": max_keypoints, "fast_threshold": fast_threshold}
     ka = detect_keypoints(frame_a.color, box_a, **kw)
     kb = detect_keypoints(frame_b.color, box_b, **kw)
