@@ -5,11 +5,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-# XLA:CPU splits each module into up to 32 parts compiled by a thread pool. The test suite
-# compiles hundreds of functions per worker, and a native crash inside XLA's compiler
-# (segfault in backend_compile_and_load, never reproducible in isolation) hit 5 of the last 6
-# full runs. Compiling each module in one part removes that concurrency (a mitigation: the
-# cause is not proven; measured no slower on 2 cores). Set before jax starts.
+# XLA:CPU splits each module into up to 32 parts compiled by a thread pool; on 2 cores one part
+# compiles faster (the tracker scan: 11 s instead of 17 s, measured under load). Set before jax
+# starts.
 os.environ["XLA_FLAGS"] = " ".join(
     [os.environ.get("XLA_FLAGS", ""), "--xla_cpu_parallel_codegen_split_count=1"]).strip()
 
@@ -18,6 +16,13 @@ import pytest  # noqa: E402
 from hypothesis import HealthCheck, settings  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+# Computations run in the calling thread, not handed to XLA's worker thread. Native crashes
+# (segfault / abort) inside XLA while the main thread compiled came about once per full run
+# (7 in the last 7 runs), one of them in a thread other than the compiling one; this removes
+# concurrent execution
+# during compilation as a suspect (a mitigation: the cause is not proven). The library's
+# users keep JAX's default; the results do not depend on the dispatch mode.
+jax.config.update("jax_cpu_enable_async_dispatch", False)
 
 settings.register_profile(
     "phjax",
