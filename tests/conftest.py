@@ -19,9 +19,8 @@ jax.config.update("jax_enable_x64", True)
 # Computations run in the calling thread, not handed to XLA's worker thread. Native crashes
 # (segfault / abort) inside XLA while the main thread compiled came about once per full run
 # (7 in the last 7 runs), one of them in a thread other than the compiling one; this removes
-# concurrent execution
-# during compilation as a suspect (a mitigation: the cause is not proven). The library's
-# users keep JAX's default; the results do not depend on the dispatch mode.
+# concurrent execution during compilation as a suspect (a mitigation: the cause is not
+# proven). The library's users keep JAX's default; results do not depend on the dispatch mode.
 jax.config.update("jax_cpu_enable_async_dispatch", False)
 
 settings.register_profile(
