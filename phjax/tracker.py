@@ -535,11 +535,35 @@ def _prepare_recording(times, positions, quaternions, render_times):
     return times - origin, positions, quaternions, render_times - origin, orientation_only
 
 
+#: compiled versions (recording shapes) kept per batch entry point, see :func:`_bounded_cache`
+_MAX_COMPILED_SHAPES = 4
+_COMPILED_KEYS: dict = {}
+
+
+def _bounded_cache(core, key) -> None:
+    """Keep at most ``_MAX_COMPILED_SHAPES`` compiled versions of the jitted ``core``.
+
+    Every recording length compiles the whole scan again, and XLA:CPU maps the code of one
+    compiled stream into about 1200 memory regions (``/proc/self/maps``, float64 track),
+    which are released only with the executable. Linux allows a process 65530 of them
+    (``vm.max_map_count``): some 50 distinct lengths in one process made mmap fail inside
+    XLA's compiler (segfault or abort). Before a new shape would exceed the bound, ``core``'s
+    compilation cache is cleared.
+    """
+    keys = _COMPILED_KEYS.setdefault(core, set())
+    if key not in keys and max(len(keys), core._cache_size()) >= _MAX_COMPILED_SHAPES:
+        core.clear_cache()
+        keys.clear()
+    keys.add(key)
+
+
 def _run_recording(core, config, times, positions, quaternions, render_times, dtype):
     """Validate and normalise a recording (outside jit), run a jitted ``core`` on it."""
     t, p, q, r, orientation_only = _prepare_recording(times, positions, quaternions, render_times)
     dtype = jnp.zeros((), float).dtype if dtype is None else dtype
-    out_p, out_q = core(config, *(jnp.asarray(x, dtype) for x in (t, p, q, r)))
+    args = [jnp.asarray(x, dtype) for x in (t, p, q, r)]
+    _bounded_cache(core, (jax.tree.structure(config), tuple(a.shape for a in args), args[0].dtype))
+    out_p, out_q = core(config, *args)
     if orientation_only:
         out_p = jnp.full_like(out_p, jnp.nan)
     return out_p, out_q
@@ -583,7 +607,9 @@ def track(
 
     Equivalent to calling :func:`tracker_update` for each measurement and
     :func:`tracker_sample` at each render time: the output at ``tau`` uses only measurements
-    with ``t <= tau``.
+    with ``t <= tau``. Each new pair of lengths ``(N, M)`` compiles the scan (seconds); the
+    last four shapes stay compiled (more would exhaust the process's memory mappings, see
+    ``_bounded_cache``).
 
     Arguments:
         times: measurement times, s (sorted and de-duplicated here with a warning if needed;

@@ -5,23 +5,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-# XLA:CPU splits each module into up to 32 parts compiled by a thread pool; on 2 cores one part
-# compiles faster (the tracker scan: 11 s instead of 17 s, measured under load). Set before jax
-# starts.
-os.environ["XLA_FLAGS"] = " ".join(
-    [os.environ.get("XLA_FLAGS", ""), "--xla_cpu_parallel_codegen_split_count=1"]).strip()
-
-import jax  # noqa: E402
-import pytest  # noqa: E402
-from hypothesis import HealthCheck, settings  # noqa: E402
+import jax
+import pytest
+from hypothesis import HealthCheck, settings
 
 jax.config.update("jax_enable_x64", True)
-# Computations run in the calling thread, not handed to XLA's worker thread. Native crashes
-# (segfault / abort) inside XLA while the main thread compiled came about once per full run
-# (7 in the last 7 runs), one of them in a thread other than the compiling one; this removes
-# concurrent execution during compilation as a suspect (a mitigation: the cause is not
-# proven). The library's users keep JAX's default; results do not depend on the dispatch mode.
-jax.config.update("jax_cpu_enable_async_dispatch", False)
 
 settings.register_profile(
     "phjax",
@@ -47,3 +35,25 @@ def shared_path(*parts: str) -> Path:
 @pytest.fixture
 def shared_data() -> Path:
     return shared_path()
+
+
+#: /proc/self/maps entries above which the compiled functions are dropped (Linux allows 65530)
+_MAX_MAPPINGS = 40000
+
+
+@pytest.fixture(autouse=True)
+def _bounded_memory_mappings():
+    """Drop JAX's compiled functions when the process nears Linux's limit of memory mappings.
+
+    XLA:CPU maps the code of every compiled function into its own memory regions (about 1200
+    for one compiled tracker scan) until the function is dropped; a test worker compiles
+    hundreds of functions, and one that reached ``vm.max_map_count`` crashed inside XLA's
+    compiler (segfault or abort, about once per full run before this fixture).
+    """
+    yield
+    maps = Path("/proc/self/maps")
+    if maps.exists():
+        with maps.open("rb") as f:
+            n = sum(1 for _ in f)
+        if n > _MAX_MAPPINGS:
+            jax.clear_caches()

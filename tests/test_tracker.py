@@ -311,3 +311,29 @@ def test_bad_input_messages():
         pj.track(np.zeros(3), np.zeros((3, 2)), np.zeros((3, 4)), np.zeros(2))
     with pytest.raises(ValueError, match="finite"):
         pj.track(np.array([0.0, np.nan]), np.zeros((2, 3)), np.ones((2, 4)), np.zeros(2))
+
+
+def test_compiled_shapes_are_bounded(head, monkeypatch):
+    """Each recording length compiles the scan; at most ``_MAX_COMPILED_SHAPES`` stay compiled,
+    so many lengths in one process do not exhaust its memory mappings (XLA:CPU maps ~1200
+    regions per compiled stream; Linux allows 65530), and results do not change."""
+    from pathlib import Path
+
+    _, _, _, mt, mp, mq = head
+    monkeypatch.setattr(tracker, "_MAX_COMPILED_SHAPES", 2)
+    tracker._track_core.clear_cache()
+    tracker._COMPILED_KEYS.pop(tracker._track_core, None)
+    maps = Path("/proc/self/maps")
+
+    def nmaps():
+        return sum(1 for _ in maps.open("rb")) if maps.exists() else 0
+
+    r = np.linspace(mt[0], mt[10], 50)
+    outs, counts = [], []
+    for n in (12, 13, 14, 12):
+        outs.append(np.asarray(pj.track(mt[:n], mp[:n], mq[:n], r, dtype=jnp.float64)[0]))
+        counts.append(nmaps())
+        assert tracker._track_core._cache_size() <= 2
+    np.testing.assert_array_equal(outs[3], outs[0])  # recompiled after eviction: same result
+    if maps.exists():
+        assert counts[1] > counts[0] and counts[2] < counts[1]  # the third shape evicted two
