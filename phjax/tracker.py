@@ -546,9 +546,10 @@ def _bounded_cache(core, key) -> None:
     Every recording length compiles the whole scan again, and XLA:CPU maps the code of one
     compiled stream into about 1200 memory regions (``/proc/self/maps``, float64 track),
     which are released only with the executable. Linux allows a process 65530 of them
-    (``vm.max_map_count``): some 50 distinct lengths in one process made mmap fail inside
-    XLA's compiler (segfault or abort). Before a new shape would exceed the bound, ``core``'s
-    compilation cache is cleared.
+    (``vm.max_map_count``), i.e. about 50 distinct lengths; then mmap fails inside XLA's
+    compiler and the process dies (reproduced with the limit lowered to 8000: LLVM "Cannot
+    allocate memory", segfault at the sixth length). Before a new shape would exceed the
+    bound, ``core``'s compilation cache is cleared.
     """
     keys = _COMPILED_KEYS.setdefault(core, set())
     if key not in keys and max(len(keys), core._cache_size()) >= _MAX_COMPILED_SHAPES:
@@ -607,8 +608,8 @@ def track(
 
     Equivalent to calling :func:`tracker_update` for each measurement and
     :func:`tracker_sample` at each render time: the output at ``tau`` uses only measurements
-    with ``t <= tau``. Each new pair of lengths ``(N, M)`` compiles the scan (seconds); the
-    last four shapes stay compiled (more would exhaust the process's memory mappings, see
+    with ``t <= tau``. Each new pair of lengths ``(N, M)`` compiles the scan (seconds); at
+    most four shapes stay compiled (more would exhaust the process's memory mappings, see
     ``_bounded_cache``).
 
     Arguments:
