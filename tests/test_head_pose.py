@@ -188,6 +188,36 @@ def test_biwi_relative_pose_acceptance(biwi, detectors, backend):
             assert r.face is not None and r.face.landmarks.shape == (5, 2)
 
 
+def test_synthetic_sequence_end_to_end_accuracy(detectors):
+    """Acceptance: the package's rendered RGB-D head (exact ground truth, 60 frames at 30 Hz)
+    through the front-end (OpenCV backend) and the causal 120 Hz stream: rotation RMSE <= 2 deg
+    and position RMSE <= 1 cm against the ground truth, per frame and rendered."""
+    import phjax as pj
+    from phjax.metrics import position_rmse, rotation_rmse_deg as rotation_rmse
+    from phjax.resample import interpolate_poses
+
+    seq = R.open_rgbd("synthetic:60:3")
+    gt = seq.ground_truth
+    est = H.HeadPoseEstimator(seq.intrinsics, detector=detectors["opencv"],
+                              reference_pose=(gt.quaternions[0], gt.positions[0]))
+    res = [est.process_frame(seq[i]) for i in range(len(seq))]
+    assert all(r.ok for r in res)
+    times = np.array([r.timestamp for r in res])
+    pos = np.array([r.position for r in res])
+    quat = np.array([r.quaternion for r in res])
+    per_frame = (position_rmse(pos, gt.positions[:60]).value,
+                 rotation_rmse(quat, gt.quaternions[:60]).value)
+    print("per frame: position RMSE %.4f m, rotation RMSE %.3f deg" % per_frame)
+    assert per_frame[0] < 0.01 and per_frame[1] < 2.0, per_frame
+    render = np.arange(times[0], times[-1], 1 / 120)
+    P, Q = (np.asarray(x) for x in pj.track(times, pos, quat, render, dtype=np.float64))
+    gp, gq = (np.asarray(x) for x in interpolate_poses(gt.times[:60], gt.positions[:60],
+                                                       gt.quaternions[:60], render))
+    stream = (position_rmse(P, gp).value, rotation_rmse(Q, gq).value)
+    print("120 Hz stream: position RMSE %.4f m, rotation RMSE %.3f deg" % stream)
+    assert stream[0] < 0.01 and stream[1] < 2.0, stream
+
+
 def test_status_on_bad_frames_and_recovery(biwi, detectors):
     frames, _ = biwi
     f = frames["00054"]
