@@ -5,7 +5,7 @@ Usage (from the repository root)::
     python benchmarks/bench_ph.py [--quick] [--dtype float32|float64] [--only SECTIONS]
 
 Prints Markdown tables. Every ratio compares numbers measured in the same run (same machine
-state): phjax against the independent NumPy reference (``tests/reference_ph_numpy.py``),
+state): phjax against the independent NumPy reference (``tests/curves/reference_ph_numpy.py``),
 scipy's ``CubicHermiteSpline`` and the memory-write rate of an output-sized array. Timings use
 ``time.perf_counter`` after warm-up (and ``block_until_ready`` for JAX); "best" is the minimum
 and "median" the median over the repeats. Compile time is excluded from throughput and reported
@@ -28,7 +28,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "tests" / "curves"))
 
 SECTIONS = ("construction", "sampling", "latency", "scaling")
 

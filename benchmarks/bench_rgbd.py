@@ -3,7 +3,7 @@
     python benchmarks/bench_rgbd.py [--frames 60] [--repeats 3] [--skip-kornia]
 
 Streams (all 640x480, depth registered to colour, frames decoded/rendered before timing):
-* ``synthetic``: the rendered head of :mod:`phjax.synthetic_rgbd` (smooth seated motion at
+* ``synthetic``: the rendered head of :mod:`phjax.vision.synthetic_rgbd` (smooth seated motion at
   30 Hz; the typical case: RANSAC + one ICP run per frame). Accuracy against its ground truth
   is printed as well (rotation/position error with the first frame as ground-truth reference).
 * ``biwi-cycle``: the three Biwi sample frames in a loop, i.e. 30-62 degree jumps every frame
@@ -32,11 +32,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from phjax import face_detection as F
-from phjax import head_pose as H
-from phjax import rgbd_io as R
-from phjax._np_quat import np_qconj, np_qmul, np_rotvec
-from phjax.datasets import shared_data_dir
+from phjax.vision import face_detection as F  # noqa: E402
+from phjax.vision import head_pose as H  # noqa: E402
+from phjax.vision import rgbd_io as R  # noqa: E402
+from phjax._np_quat import np_qconj, np_qmul, np_rotvec  # noqa: E402
+from phjax.datasets import shared_data_dir  # noqa: E402
 
 
 def _stats(results, warmup):
@@ -66,7 +66,7 @@ def _seed_models(model_dir):
         data = shared_data_dir()
         src = data / "yunet_face_detection" if data else None
         if src is None or not src.is_dir():
-            raise SystemExit(f"YuNet models not in {cache}; run phjax.face_detection."
+            raise SystemExit(f"YuNet models not in {cache}; run phjax.vision.face_detection."
                              "download_model(...) or point --model-dir at a seeded cache")
         F.seed_model_cache(src, cache)
     return cache

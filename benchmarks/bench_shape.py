@@ -1,4 +1,4 @@
-"""Benchmarks for phjax.shape: free-angle optimisation of PH quintic Hermite segments.
+"""Benchmarks for phjax.curves.shape: free-angle optimisation of PH quintic Hermite segments.
 
 Usage (from the repository root)::
 
@@ -18,7 +18,7 @@ Prints Markdown tables:
 * ``grid``: agreement with the dense-grid reference on a subsample (float64).
 
 Segments: ``p_k, p_{k+1}`` and ``d = v dt`` with the velocities of
-``phjax.resample.finite_difference_velocities``; segments with a non-finite value or a time gap
+``phjax.motion.resample.finite_difference_velocities``; segments with a non-finite value or a time gap
 longer than 5 median steps are dropped. Timings use ``time.perf_counter`` after warm-up and
 ``block_until_ready``; "best" is the minimum over repeats.
 """
@@ -66,15 +66,15 @@ def parse_args(argv=None):
 
 ARGS = parse_args()
 
-import jax
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)  # float32 runs use float32 arrays
 
-import jax.numpy as jnp
+import jax.numpy as jnp  # noqa: E402
 
-import phjax
-from phjax.resample import finite_difference_velocities
-from phjax.shape import ShapeStatus, grid_search_shape, optimize_shape
+import phjax  # noqa: E402
+from phjax.motion.resample import finite_difference_velocities  # noqa: E402
+from phjax.curves.shape import ShapeStatus, grid_search_shape, optimize_shape  # noqa: E402
 
 DATA = Path(ARGS.data)
 

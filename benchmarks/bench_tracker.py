@@ -30,7 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import phjax as pj
-from phjax import baselines, simulate, tracker
+from phjax.tracking import baselines
+from phjax.motion import simulate
+from phjax.tracking import tracker
 
 
 def _median_us(fn, repeats):

@@ -10,14 +10,14 @@ at 120 Hz:
 
 * ``C1 chain``: ``phjax.reconstruct`` (one Hermite PH quintic per frame interval, end
   derivatives = smoothed velocity x interval; C1 at every frame);
-* ``C2 spline``: :func:`phjax.ph_spline` through the smoothed positions in windows of
+* ``C2 spline``: :func:`phjax.curves.ph_spline` through the smoothed positions in windows of
   ``--window`` intervals, each window clamped at both ends to the smoothed velocity x interval
   (C2 inside windows, C1 at window joints);
 * ``cubic spline (scipy)`` through the raw measurements (the offline baseline of the tracker
   issue).
 
 Reported per sequence and as the mean ratio to the C1 chain: position RMSE against the
-ground truth and RMS jerk of the rendered positions (``phjax.metrics``), feasibility-phase
+ground truth and RMS jerk of the rendered positions (``phjax.evaluation.metrics``), feasibility-phase
 Levenberg-Marquardt steps and the
 largest equation residual of the spline solves, and how many window solves ended
 ``NOT_FAIREST`` (a valid C2 interpolant whose fairness did not reach stationarity).
@@ -40,12 +40,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from devset import load_devset  # noqa: E402
 from tune_baselines import prepare  # noqa: E402
 
-from phjax import baselines  # noqa: E402
-from phjax.kalman import KalmanConfig, kalman_filter, rts_smooth  # noqa: E402
-from phjax.metrics import position_rmse, rms_jerk_position  # noqa: E402
-from phjax.ph_quintic import PHQuintic  # noqa: E402
-from phjax.ph_spline import SplineStatus, ph_spline  # noqa: E402
-from phjax.tracker import reconstruct  # noqa: E402
+from phjax.tracking import baselines  # noqa: E402
+from phjax.tracking.kalman import KalmanConfig, kalman_filter, rts_smooth  # noqa: E402
+from phjax.evaluation.metrics import position_rmse, rms_jerk_position  # noqa: E402
+from phjax.curves.ph_quintic import PHQuintic  # noqa: E402
+from phjax.curves.ph_spline import SplineStatus, ph_spline  # noqa: E402
+from phjax.tracking.tracker import reconstruct  # noqa: E402
 
 
 def smoothed_states(mt, mp, mq):

@@ -34,7 +34,7 @@ import numpy as np
 from phjax import io
 from phjax.datasets import shared_data_dir
 from phjax.evaluation import Method, default_methods
-from phjax.metrics import (
+from phjax.evaluation.metrics import (
     evaluate,
     mean_abs_curvature,
     mean_abs_torsion,
@@ -43,8 +43,8 @@ from phjax.metrics import (
     rms_jerk_rotation,
     rotation_rmse_deg,
 )
-from phjax.resample import interpolate_poses
-from phjax.simulate import SensorModel, simulate_measurements
+from phjax.motion.resample import interpolate_poses
+from phjax.motion.simulate import SensorModel, simulate_measurements
 
 ROOT = Path(__file__).resolve().parents[1]
 DATASETS = ("head", "object", "camera")
@@ -411,11 +411,11 @@ def bootstrap_ratio_ci(
 
 
 def _reconstruct_optimised_angles(times, positions, quaternions, render_times, config=None):
-    """``phjax.reconstruct`` with bending-energy-optimal free angles (``phjax.shape``).
+    """``phjax.reconstruct`` with bending-energy-optimal free angles (``phjax.curves.shape``).
 
     Mirrors the library's offline reconstruction with public functions only: RTS-smoothed
     Kalman states, one position segment per frame interval with the angles of
-    :func:`phjax.shape.optimize_shape` (``objective="bending_energy"``) instead of the
+    :func:`phjax.curves.shape.optimize_shape` (``objective="bending_energy"``) instead of the
     closed-form near-optimal default, evaluated at the render times exactly as
     :func:`phjax.reconstruct` does; orientations are :func:`phjax.reconstruct`'s (the angles
     only change the position curve). Positions NaN when the input has none.
@@ -437,7 +437,7 @@ def _optimised_positions(cfg, t, p, q, r):
     import jax.numpy as jnp
 
     from phjax import kalman_filter, rts_smooth
-    from phjax.shape import optimize_shape
+    from phjax.curves.shape import optimize_shape
 
     sm = rts_smooth(cfg.kalman, kalman_filter(cfg.kalman, t, p, q)[0])
     x, v, ok = sm.x[:, :3], sm.x[:, 3:6], sm.initialized
@@ -453,9 +453,9 @@ def _optimised_positions(cfg, t, p, q, r):
 
 
 def _tuned_phi_methods() -> list[Method]:
-    """phjax offline with optimised free angles, when the library has ``phjax.shape``."""
+    """phjax offline with optimised free angles, when the library has ``phjax.curves.shape``."""
     try:
-        import phjax.shape  # noqa: F401
+        import phjax.curves.shape  # noqa: F401
     except ImportError:
         return []
     return [Method("phjax (offline, optimised angles)", _reconstruct_optimised_angles, False)]
@@ -679,7 +679,7 @@ def path_curvature_torsion(positions, *, min_step: float = 1e-9, min_turn: float
 
 #: Metrics of the studies (key, label, unit). ``curvature_path``/``torsion_path`` are
 #: :func:`path_curvature_torsion` (the figure's curvature and torsion); ``curvature``/``torsion``
-#: are phjax.metrics' pointwise means (kept in the CSV; see experiments/README.md).
+#: are phjax.evaluation.metrics' pointwise means (kept in the CSV; see experiments/README.md).
 FIG1_METRICS = {
     "position_rmse": ("position RMSE", "m"),
     "curvature_path": ("mean curvature", "1/m"),
@@ -701,7 +701,7 @@ def window_metrics(ex: Excerpt, p: np.ndarray, q: np.ndarray, *, full: bool = Tr
                    max_lag: float = 0.25) -> dict[str, float]:
     """Metrics of one stream over the window.
 
-    ``full=True``: :func:`phjax.metrics.evaluate` (RMSEs, curvature, torsion, jerks, velocity
+    ``full=True``: :func:`phjax.evaluation.metrics.evaluate` (RMSEs, curvature, torsion, jerks, velocity
     jumps at the camera frames, latencies with ``max_lag``). ``full=False``: only RMSEs and jerks
     (cheap; the sensitivity study).
     """

@@ -9,7 +9,7 @@ Writes into ``--out`` (default ``results/fig1``):
 
 * ``per_window.csv``: one row per (window, method): benchmark, source, recording, start,
   duration, difficulty features and score, difficulty rank, the ground truth's own path
-  metrics, and every metric of :func:`phjax.metrics.evaluate` used here;
+  metrics, and every metric of :func:`phjax.evaluation.metrics.evaluate` used here;
 * ``summary.md``: setup, per-benchmark mean and 95 % cluster-bootstrap CI of every metric and
   method, and the paired difference phjax - baseline with its CI (the paper's "advantage");
 * ``summary_stats.csv``, ``paired_differences.csv``: the numbers behind the tables;
@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import common as C  # noqa: E402
 
-from phjax.simulate import SensorModel  # noqa: E402
+from phjax.motion.simulate import SensorModel  # noqa: E402
 
 DATASET_TITLES = {"head": "Head (VR head traces)", "object": "Object (TUM VI hand-held rig)",
                   "camera": "Camera (TUM RGB-D)"}

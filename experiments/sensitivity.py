@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import common as C  # noqa: E402
 
-from phjax.simulate import SensorModel  # noqa: E402
+from phjax.motion.simulate import SensorModel  # noqa: E402
 
 REFERENCE = "kalman-cv extrapolation"
 METRICS = {

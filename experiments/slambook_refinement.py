@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from phjax import head_pose as H
-from phjax import rgbd_io as R
+from phjax.vision import head_pose as H
+from phjax.vision import rgbd_io as R
 from phjax.datasets import shared_data_dir
 
 

@@ -27,12 +27,12 @@ jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from devset import load_devset  # noqa: E402
 
-from phjax import baselines  # noqa: E402
-from phjax.kalman import KalmanConfig  # noqa: E402
-from phjax.metrics import position_rmse, rms_jerk_position, rms_jerk_rotation, rotation_rmse_deg  # noqa: E402
-from phjax.resample import interpolate_poses  # noqa: E402
-from phjax.simulate import SensorModel, simulate_measurements  # noqa: E402
-from phjax.tracker import TrackerConfig, track  # noqa: E402
+from phjax.tracking import baselines  # noqa: E402
+from phjax.tracking.kalman import KalmanConfig  # noqa: E402
+from phjax.evaluation.metrics import position_rmse, rms_jerk_position, rms_jerk_rotation, rotation_rmse_deg  # noqa: E402
+from phjax.motion.resample import interpolate_poses  # noqa: E402
+from phjax.motion.simulate import SensorModel, simulate_measurements  # noqa: E402
+from phjax.tracking.tracker import TrackerConfig, track  # noqa: E402
 
 
 def prepare(seqs, seed=0, rate=120.0):

@@ -6,14 +6,14 @@
 Protocol (an honest split of the development set of ``experiments/devset.py``):
 
 * **train** on TUM RGB-D fr1_desk and fr1_room and TUM VI room1 (first ``--seconds`` of each):
-  :func:`phjax.tuning.tune_tracker` (BFGS through the whole causal stream) tunes the Kalman noise
+  :func:`phjax.tracking.tuning.tune_tracker` (BFGS through the whole causal stream) tunes the Kalman noise
   (``pos/rot_process_noise``, ``pos/rot_meas_noise``) and the segment ``horizon`` for each
   ``lambda``, starting from the hand-set default ``TrackerConfig()``; the loss is position and
   rotation RMSE + ``lambda`` x RMS jerk, each relative to the tuned Kalman-CV extrapolation;
 * **test** on every other development sequence (other TUM RGB-D and TUM VI rooms, VR head traces;
   orientation-only traces count for the rotation columns only): the public ``phjax.track``
-  with each configuration, scored by :mod:`phjax.metrics` and divided by the same metric of the
-  tuned Kalman-CV extrapolation (:func:`phjax.baselines.kalman_extrapolation` with
+  with each configuration, scored by :mod:`phjax.evaluation.metrics` and divided by the same metric of the
+  tuned Kalman-CV extrapolation (:func:`phjax.tracking.baselines.kalman_extrapolation` with
   ``evaluation.TUNED["kalman"]``) on the same measurements; mean of the ratios over sequences.
 
 Sensor: the default :class:`phjax.SensorModel` (30 Hz, 5 mm, 1 deg, 5 % dropouts), seed 0 for
@@ -41,13 +41,15 @@ jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from devset import load_devset  # noqa: E402
 
-from phjax import baselines, tuning  # noqa: E402
+from phjax.tracking import baselines  # noqa: E402
+
+from phjax.tracking import tuning  # noqa: E402
 from phjax.evaluation import TUNED  # noqa: E402
-from phjax.kalman import KalmanConfig  # noqa: E402
-from phjax.metrics import position_rmse, rms_jerk_position, rms_jerk_rotation, rotation_rmse_deg  # noqa: E402
-from phjax.resample import interpolate_poses  # noqa: E402
-from phjax.simulate import SensorModel, simulate_measurements  # noqa: E402
-from phjax.tracker import TrackerConfig, track  # noqa: E402
+from phjax.tracking.kalman import KalmanConfig  # noqa: E402
+from phjax.evaluation.metrics import position_rmse, rms_jerk_position, rms_jerk_rotation, rotation_rmse_deg  # noqa: E402
+from phjax.motion.resample import interpolate_poses  # noqa: E402
+from phjax.motion.simulate import SensorModel, simulate_measurements  # noqa: E402
+from phjax.tracking.tracker import TrackerConfig, track  # noqa: E402
 
 TRAIN = ("fr1_desk", "fr1_room", "room1")
 QUICK_TEST = ("fr1_xyz", "fr3_long_office_household", "room2", "corbillon-user1", "cwi-H1-P01_V1")

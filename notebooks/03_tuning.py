@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import phjax as pj
-from phjax import tuning
+from phjax.tracking import tuning
 
 jax.config.update("jax_enable_x64", True)
 t_start = time.perf_counter()

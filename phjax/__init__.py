@@ -1,43 +1,38 @@
 """phjax: smooth, predictive head and camera tracking in JAX.
 
 Pose per camera frame, Kalman prediction, and render-rate motion reconstruction with spatial
-Pythagorean-hodograph (PH) quintics. See the README for an overview.
+Pythagorean-hodograph (PH) quintics. The public API is re-exported here; the subpackages hold
+the parts, in the order the data flows:
+
+* :mod:`phjax.vision`: head pose per RGB-D frame (face detection, features, alignment, ICP).
+* :mod:`phjax.motion`: synthetic head motion, the simulated sensor, trajectory resampling.
+* :mod:`phjax.tracking`: Kalman filter, the causal stream and its real-time driver, baselines,
+  tuning.
+* :mod:`phjax.curves`: the PH quintic engine, sampling, shape optimisation, C2 splines,
+  quaternion curves.
+* :mod:`phjax.evaluation`: metrics and the comparison with baselines.
+* :mod:`phjax.quaternion` (rotation algebra), :mod:`phjax.io` (trajectory files),
+  :mod:`phjax.datasets` (the shared recordings), :mod:`phjax.cli` (the command line).
 """
 
-from . import face_detection, features, head_pose, io, rgbd_io, tuning
-from .face_detection import FaceDetection, FaceDetector, seed_model_cache
-from .head_pose import (
-    DenseRefinement,
-    HeadPoseConfig,
-    HeadPoseEstimator,
-    HeadPoseResult,
-    HeadPoseStatus,
-    rgbd_relative_pose,
+from . import curves, evaluation, io, motion, quaternion, tracking, vision
+from .curves import (
+    FrameKind,
+    PHQuintic,
+    QuaternionHermite,
+    ShapeSolution,
+    ShapeStatus,
+    SplineSolution,
+    SplineStatus,
+    grid_search_shape,
+    hermite_quintic,
+    near_optimal_angles,
+    optimize_shape,
+    ph_spline,
+    quaternion_hermite,
+    sample,
 )
-from .alignment import AlignmentResult, AlignmentStatus, align, ransac_align, transform_points
-from .icp import (
-    IcpResult,
-    IcpStatus,
-    PinholeIntrinsics,
-    backproject,
-    estimate_normals,
-    icp_point_to_plane,
-    icp_projective,
-)
-from .kalman import (
-    KalmanConfig,
-    KalmanInfo,
-    KalmanState,
-    kalman_filter,
-    kalman_init,
-    kalman_predict,
-    kalman_step,
-    kalman_update,
-    predict_pose,
-    rts_smooth,
-)
-from .orientation import QuaternionHermite, quaternion_hermite
-from .ph_quintic import FrameKind, PHQuintic, hermite_quintic, near_optimal_angles
+from .motion import SensorModel, simulate_measurements, synthetic_head_motion
 from .quaternion import (
     quat_conj,
     quat_exp,
@@ -56,35 +51,77 @@ from .quaternion import (
     quat_to_matrix,
     quat_to_rotvec,
 )
-from .ph_spline import SplineSolution, SplineStatus, ph_spline
-from .sampling import sample
-from .shape import ShapeSolution, ShapeStatus, grid_search_shape, optimize_shape
-from .simulate import SensorModel, simulate_measurements, synthetic_head_motion
-from .synthetic_rgbd import (
-    HeadModel,
-    SyntheticRGBDFrame,
-    SyntheticRGBDSequence,
-    add_depth_noise,
-    render_rgbd,
-    synthetic_rgbd_sequence,
-)
-from .rgbd_io import CameraIntrinsics, RGBDFrame, RGBDSequence, open_rgbd
-from .tuning import TuningResult, load_config, save_config, tracker_loss, tune_tracker
-from .tracker import (
+from .tracking import (
+    KalmanConfig,
+    KalmanInfo,
+    KalmanState,
     TrackerConfig,
     TrackerState,
+    TrackerStream,
+    TuningResult,
+    kalman_filter,
+    kalman_init,
+    kalman_predict,
+    kalman_step,
+    kalman_update,
+    load_config,
+    predict_pose,
     reconstruct,
+    rts_smooth,
+    save_config,
     track,
     tracker_config_arrays,
     tracker_init,
+    tracker_loss,
     tracker_sample,
     tracker_update,
+    tune_tracker,
 )
-from .stream import TrackerStream
+from .tracking import tuning
+from .vision import (
+    AlignmentResult,
+    AlignmentStatus,
+    CameraIntrinsics,
+    DenseRefinement,
+    FaceDetection,
+    FaceDetector,
+    HeadModel,
+    HeadPoseConfig,
+    HeadPoseEstimator,
+    HeadPoseResult,
+    HeadPoseStatus,
+    IcpResult,
+    IcpStatus,
+    PinholeIntrinsics,
+    RGBDFrame,
+    RGBDSequence,
+    SyntheticRGBDFrame,
+    SyntheticRGBDSequence,
+    add_depth_noise,
+    align,
+    backproject,
+    estimate_normals,
+    icp_point_to_plane,
+    icp_projective,
+    open_rgbd,
+    ransac_align,
+    render_rgbd,
+    rgbd_relative_pose,
+    seed_model_cache,
+    synthetic_rgbd_sequence,
+    transform_points,
+)
+from .vision import face_detection, features, head_pose, rgbd_io
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "curves",
+    "evaluation",
+    "motion",
+    "quaternion",
+    "tracking",
+    "vision",
     "io",
     "face_detection",
     "features",

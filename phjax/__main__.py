@@ -1,5 +1,5 @@
 """``python -m phjax``: the command-line interface (see ``phjax --help``)."""
 
-from .cli import main
+from .cli._main import main
 
 raise SystemExit(main())

@@ -51,9 +51,14 @@ def _bounded_memory_mappings():
     compiler (segfault or abort, about once per full run before this fixture).
     """
     yield
+    if mapping_count() > _MAX_MAPPINGS:
+        jax.clear_caches()
+
+
+def mapping_count() -> int:
+    """Memory mappings of this process (lines of ``/proc/self/maps``; 0 where that is absent)."""
     maps = Path("/proc/self/maps")
-    if maps.exists():
-        with maps.open("rb") as f:
-            n = sum(1 for _ in f)
-        if n > _MAX_MAPPINGS:
-            jax.clear_caches()
+    if not maps.exists():
+        return 0
+    with maps.open("rb") as f:
+        return sum(1 for _ in f)

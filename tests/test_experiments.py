@@ -191,7 +191,7 @@ def test_draw_windows_deterministic_and_inside_the_recordings():
 
 def test_padded_excerpt_gives_the_unpadded_result():
     from phjax import SensorModel, track
-    from phjax.baselines import cubic_spline
+    from phjax.tracking.baselines import cubic_spline
 
     recs = _fake_recordings()
     proto = C.Protocol()

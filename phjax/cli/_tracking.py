@@ -1,0 +1,175 @@
+"""Tracking commands of the ``phjax`` CLI: ``demo``, ``evaluate``, ``smooth``."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ._tune import add_config_argument
+
+
+def _x64():
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+
+def _sensor(args):
+    from ..motion.simulate import SensorModel
+
+    return SensorModel(rate=args.camera_rate, sigma_p=args.sigma_p / 1e3,
+                       sigma_r=float(np.deg2rad(args.sigma_r)), dropout=args.dropout,
+                       jitter=args.jitter)
+
+
+def _run_evaluation(times, positions, quaternions, args, title: str) -> int:
+    from ._tune import config_from_args
+    from ..evaluation.report import default_methods, evaluate_recording, format_table, plot_evaluation
+
+    config = config_from_args(args)
+    t0 = time.perf_counter()
+    result = evaluate_recording(times, positions, quaternions, sensor=_sensor(args),
+                                render_rate=args.rate, seed=args.seed, progress=not args.no_progress,
+                                methods=default_methods(config))
+    elapsed = time.perf_counter() - t0
+    print(f"# {title}")
+    print(f"sensor: {args.camera_rate:g} Hz, sigma_p {args.sigma_p:g} mm, sigma_r {args.sigma_r:g} deg, "
+          f"dropout {100 * args.dropout:g} %, jitter {args.jitter:g}; render {args.rate:g} Hz; "
+          f"seed {args.seed}; {elapsed:.1f} s")
+    print()
+    print(format_table(result.metrics, result.causal))
+    if args.plot:
+        path = plot_evaluation(result, args.plot)
+        print(f"\nplot written to {path}")
+    return 0
+
+
+def _demo_rgbd(args) -> int:
+    """End to end on the package's synthetic RGB-D head: front-end, tracker, accuracy."""
+    import argparse
+    import tempfile
+    from pathlib import Path
+
+    from ..vision import face_detection
+    from ._rgbd import cmd_track_rgbd
+    from ..datasets import shared_data_dir
+
+    try:
+        face_detection.model_path(face_detection.YUNET_ONNX)
+    except face_detection.ModelNotFoundError:
+        shared = shared_data_dir()
+        src = None if shared is None else shared / "yunet_face_detection"
+        if src is not None and src.is_dir():
+            cached = face_detection.seed_model_cache(src)
+            print(f"model cache seeded from {src}: {', '.join(p.name for p in cached)}")
+        else:
+            print("YuNet model not in the cache: downloading it (sha256-checked)")
+            face_detection.download_model(face_detection.YUNET_ONNX)
+    out = Path(args.plot).with_suffix(".tum") if args.plot else Path(tempfile.gettempdir()) / "phjax_demo_rgbd.tum"
+    ns = argparse.Namespace(source=f"synthetic:{args.rgbd}:{args.seed}", output=str(out), rate=args.rate,
+                            backend="opencv", model_dir=None, download_models=False, features="orb",
+                            icp="projective", detect_interval=1, max_frames=None, raw=None,
+                            gt_reference=True, no_progress=args.no_progress)
+    print(f"# phjax demo --rgbd: {args.rgbd} synthetic RGB-D frames (640x480, 30 Hz) -> head pose -> "
+          f"{args.rate:g} Hz stream")
+    return cmd_track_rgbd(ns)
+
+
+def cmd_demo(args) -> int:
+    _x64()
+    if args.rgbd:
+        return _demo_rgbd(args)
+    if args.input:
+        from ..io import read_trajectory
+
+        traj = read_trajectory(args.input)
+        return _run_evaluation(traj.times, traj.positions, traj.quaternions, args, f"phjax demo on {args.input}")
+    from ..motion.simulate import synthetic_head_motion
+
+    t, p, q = synthetic_head_motion(duration=args.duration, seed=args.seed)
+    return _run_evaluation(t, p, q, args, f"phjax demo: synthetic head motion ({args.duration:g} s)")
+
+
+def cmd_evaluate(args) -> int:
+    _x64()
+    from ..io import read_trajectory
+
+    traj = read_trajectory(args.ground_truth, format=args.format)
+    return _run_evaluation(traj.times, traj.positions, traj.quaternions, args,
+                           f"phjax evaluate {args.ground_truth}")
+
+
+def cmd_smooth(args) -> int:
+    _x64()
+    from ..io import Trajectory, read_trajectory, write_trajectory
+    from ..tracking.tracker import reconstruct, track
+
+    traj = read_trajectory(args.input, format=args.format)
+    render = np.arange(traj.times[0], traj.times[-1], 1.0 / args.rate)
+    from ._tune import config_from_args
+
+    fn = reconstruct if args.offline else track
+    t0 = time.perf_counter()
+    p, q = fn(traj.times, traj.positions, traj.quaternions, render, config=config_from_args(args))
+    p, q = np.asarray(p, np.float64), np.asarray(q, np.float64)
+    ok = np.isfinite(q).all(-1)
+    out = Trajectory(render[ok], p[ok], q[ok])
+    write_trajectory(args.output, out, format=args.out_format)
+    print(f"{'offline' if args.offline else 'causal'} stream: {traj.num_samples} poses -> "
+          f"{out.num_samples} at {args.rate:g} Hz in {time.perf_counter() - t0:.2f} s; wrote {args.output}")
+    return 0
+
+
+def _sensor_args(p):
+    g = p.add_argument_group("sensor model")
+    g.add_argument("--camera-rate", type=float, default=30.0, help="measurement rate, Hz (default 30)")
+    g.add_argument("--sigma-p", type=float, default=5.0, help="position noise std, mm (default 5)")
+    g.add_argument("--sigma-r", type=float, default=1.0, help="rotation noise std per axis, deg (default 1)")
+    g.add_argument("--dropout", type=float, default=0.05, help="fraction of lost frames (default 0.05)")
+    g.add_argument("--jitter", type=float, default=0.0, help="timestamp jitter, fraction of the period")
+    p.add_argument("--rate", type=float, default=120.0, help="render rate, Hz (default 120)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--plot", default="phjax_evaluation.png",
+                   help="PNG plot path (default phjax_evaluation.png; '' for none)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_config_argument(p)
+
+
+def add_commands(sub) -> None:
+    p = sub.add_parser(
+        "demo", help="the main job: evaluate phjax and the baselines on the bundled synthetic head motion",
+        description="Simulate a camera-rate sensor from a ground-truth head motion (by default the "
+        "package's synthetic seated-VR head motion; or a trajectory file you name), run the causal "
+        "phjax stream, the offline reconstruction and every baseline (tuned Kalman CV "
+        "extrapolation, One Euro, raw hold, scipy cubic spline, linear/slerp), print the metrics "
+        "table and write a PNG plot.")
+    p.add_argument("input", nargs="?", help="optional ground-truth trajectory file (TUM, EuRoC, CSV, ...)")
+    p.add_argument("--duration", type=float, default=60.0, help="length of the synthetic motion, s")
+    p.add_argument("--rgbd", type=int, default=0, metavar="N",
+                   help="instead: the end-to-end path on N frames of the package's synthetic RGB-D "
+                   "head (YuNet + features + depth + ICP head pose, then the tracker); the YuNet "
+                   "model is taken from the cache, seeded from ../shared/data when present, else "
+                   "downloaded")
+    _sensor_args(p)
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("evaluate", help="metrics of phjax and every baseline on a ground-truth file",
+                       description="Like 'demo' on a ground-truth trajectory file.")
+    p.add_argument("ground_truth", help="ground-truth trajectory (TUM .txt, EuRoC/TUM-VI .csv, phjax .csv)")
+    p.add_argument("--format", default="auto", help="input format (auto, tum, euroc, csv, corbillon, hachaj)")
+    _sensor_args(p)
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("smooth", help="render a recorded pose stream at a given rate",
+                       description="Read measured poses (NaN rows = lost frames), run the causal "
+                       "phjax stream (or the offline reconstruction with --offline) and write "
+                       "the poses at --rate.")
+    p.add_argument("input", help="measured trajectory file")
+    p.add_argument("-o", "--output", required=True, help="output file (.txt = TUM, .csv = plain CSV)")
+    p.add_argument("--rate", type=float, default=120.0, help="output rate, Hz (default 120)")
+    p.add_argument("--offline", action="store_true", help="offline reconstruction (uses the future)")
+    p.add_argument("--format", default="auto", help="input format (default auto)")
+    p.add_argument("--out-format", default="auto", help="output format (auto by extension, tum, csv, euroc)")
+    add_config_argument(p)
+    p.set_defaults(func=cmd_smooth)

@@ -1,0 +1,54 @@
+"""Evaluation: metrics against ground truth, and the comparison of phjax with its baselines.
+
+* :mod:`~phjax.evaluation.metrics`: RMSE (position, rotation), RMS jerk, curvature / torsion,
+  velocity jumps, latency.
+* :mod:`~phjax.evaluation.report`: simulate a sensor on a ground-truth recording, run phjax and
+  every baseline, score them, print the table and draw the figure (the ``phjax demo`` /
+  ``phjax evaluate`` job).
+"""
+
+from .metrics import (
+    Latency,
+    Metric,
+    evaluate,
+    latency,
+    max_angular_velocity_jump,
+    max_velocity_jump,
+    mean_abs_curvature,
+    mean_abs_torsion,
+    position_rmse,
+    rms_jerk_position,
+    rms_jerk_rotation,
+    rotation_rmse_deg,
+)
+from .report import (
+    TUNED,
+    EvaluationResult,
+    Method,
+    default_methods,
+    evaluate_recording,
+    format_table,
+    plot_evaluation,
+)
+
+__all__ = [
+    "EvaluationResult",
+    "Latency",
+    "Method",
+    "Metric",
+    "TUNED",
+    "default_methods",
+    "evaluate",
+    "evaluate_recording",
+    "format_table",
+    "latency",
+    "max_angular_velocity_jump",
+    "max_velocity_jump",
+    "mean_abs_curvature",
+    "mean_abs_torsion",
+    "plot_evaluation",
+    "position_rmse",
+    "rms_jerk_position",
+    "rms_jerk_rotation",
+    "rotation_rmse_deg",
+]

@@ -1,0 +1,502 @@
+"""Accuracy, smoothness and latency metrics for rendered pose streams.
+
+All metrics are evaluated in **float64 NumPy**, independently of JAX's x64 flag: third derivatives
+by finite differences are far below float32 resolution. Inputs may be NumPy or JAX arrays.
+
+NaN handling: every metric ignores samples (or finite-difference windows) that touch a NaN row of
+either input and reports how many were used. A metric with nothing to evaluate returns
+``Metric(nan, 0)`` instead of raising, so orientation-only data (NaN positions) yields NaN
+position metrics.
+
+Conventions: quaternions are ``wxyz``; angular velocities are world-frame (``dq/dt = 0.5 w q``);
+finite-difference derivatives use local polynomial stencils on the actual (possibly non-uniform)
+sample times, so no uniform grid is assumed; times must be strictly increasing.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from jaxtyping import ArrayLike, Float
+
+from .._np_quat import np_qconj as _np_qconj
+from .._np_quat import np_qmul as _np_qmul
+from .._np_quat import np_qnormalize as _np_qnormalize
+from .._np_quat import np_rotvec as _np_rotvec
+
+__all__ = [
+    "Metric",
+    "Latency",
+    "position_rmse",
+    "rotation_rmse_deg",
+    "rms_jerk_position",
+    "rms_jerk_rotation",
+    "mean_abs_curvature",
+    "mean_abs_torsion",
+    "max_velocity_jump",
+    "max_angular_velocity_jump",
+    "latency",
+    "evaluate",
+]
+
+
+class Metric(NamedTuple):
+    """A scalar metric and the number of samples (or windows) it was computed from."""
+
+    value: float
+    count: int
+
+
+class Latency(NamedTuple):
+    """Estimated lag (s, positive = estimate behind), peak normalised correlation, samples used."""
+
+    value: float
+    correlation: float
+    count: int
+
+
+_NAN = Metric(float("nan"), 0)
+
+
+# ----------------------------------------------------------------------------------------------
+# float64 NumPy quaternion helpers (wxyz); also used by the NumPy reference baselines
+# ----------------------------------------------------------------------------------------------
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers
+# ----------------------------------------------------------------------------------------------
+
+
+def _as64(x: ArrayLike) -> np.ndarray:
+    return np.asarray(x, dtype=np.float64)
+
+
+def _finite_rows(x: np.ndarray) -> np.ndarray:
+    return np.all(np.isfinite(x), axis=-1)
+
+
+def _check_times(t: np.ndarray, n: int) -> None:
+    if t.shape != (n,):
+        raise ValueError(f"times must have shape ({n},), got {t.shape}")
+    if n > 1 and not np.all(np.diff(t) > 0):
+        raise ValueError("times must be finite and strictly increasing")
+
+
+def _fd_weights(offsets: np.ndarray, order: int) -> np.ndarray:
+    """Finite-difference weights for the ``order``-th derivative at offset 0.
+
+    ``sum_j w_j f(t + d_j)`` is exact for polynomials of degree ``< m`` (``m`` = number of
+    offsets). Batched over leading axes; offsets are rescaled to ``[-1, 1]`` before the
+    Vandermonde solve for conditioning.
+    """
+    d = np.asarray(offsets, dtype=np.float64)
+    m = d.shape[-1]
+    scale = np.max(np.abs(d), axis=-1, keepdims=True)
+    scale = np.where(scale > 0, scale, 1.0)
+    s = d / scale
+    k = np.arange(m)
+    fact = np.array([math.factorial(i) for i in range(m)], dtype=np.float64)
+    vander = s[..., None, :] ** k[:, None] / fact[:, None]  # [..., k, j] = s_j^k / k!
+    rhs = np.zeros(d.shape[:-1] + (m, 1))
+    rhs[..., order, 0] = 1.0
+    w = np.linalg.solve(vander, rhs)[..., 0]
+    return w / scale**order
+
+
+def _windows(n: int, size: int) -> np.ndarray:
+    """Index windows ``[i, i + size)`` for ``i = 0 .. n - size``, shape ``(n - size + 1, size)``."""
+    return np.arange(n - size + 1)[:, None] + np.arange(size)[None, :]
+
+
+def _stencil_derivatives(t: np.ndarray, x: np.ndarray, orders: tuple[int, ...], size: int = 5):
+    """Derivatives at the centres of all ``size``-point windows whose rows are all finite.
+
+    Returns ``(centre_indices, [deriv_order (c, d) for each order])``.
+    """
+    n = t.shape[0]
+    if n < size:
+        return np.zeros(0, dtype=int), [np.zeros((0,) + x.shape[1:]) for _ in orders]
+    win = _windows(n, size)
+    ok = np.all(_finite_rows(x)[win], axis=1)
+    win = win[ok]
+    c = size // 2
+    centre = win[:, c]
+    offs = t[win] - t[centre][:, None]
+    out = []
+    for order in orders:
+        w = _fd_weights(offs, order)
+        out.append(np.einsum("wj,wjd->wd", w, x[win]))
+    return centre, out
+
+
+def _angular_velocity_midpoints(t: np.ndarray, q: np.ndarray):
+    """World-frame angular velocity between consecutive samples, at the interval midpoints."""
+    return _span_velocity(t, q, 1, "rotation")
+
+
+def _span_velocity(t: np.ndarray, x: np.ndarray, span: int, kind: str):
+    """Mean (angular) velocity over ``[t_i, t_{i+span}]``, placed at the interval midpoint."""
+    dt = (t[span:] - t[:-span])[:, None]
+    if kind == "position":
+        d = x[span:] - x[:-span]
+    else:
+        q = _np_qnormalize(x)
+        d = _np_rotvec(_np_qmul(q[span:], _np_qconj(q[:-span])))
+    return 0.5 * (t[span:] + t[:-span]), d / dt
+
+
+# ----------------------------------------------------------------------------------------------
+# accuracy
+# ----------------------------------------------------------------------------------------------
+
+
+def position_rmse(est: Float[ArrayLike, "n 3"], gt: Float[ArrayLike, "n 3"]) -> Metric:
+    """Root-mean-square Euclidean position error (m) over rows finite in both inputs."""
+    est, gt = _as64(est), _as64(gt)
+    if est.shape != gt.shape:
+        raise ValueError(f"shape mismatch: {est.shape} vs {gt.shape}")
+    ok = _finite_rows(est) & _finite_rows(gt)
+    n = int(ok.sum())
+    if n == 0:
+        return _NAN
+    err = np.sum((est[ok] - gt[ok]) ** 2, axis=-1)
+    return Metric(float(np.sqrt(np.mean(err))), n)
+
+
+def _geodesic_angle(q_est: np.ndarray, q_gt: np.ndarray) -> np.ndarray:
+    dq = _np_qmul(_np_qconj(_np_qnormalize(q_est)), _np_qnormalize(q_gt))
+    return 2 * np.arctan2(np.linalg.norm(dq[..., 1:], axis=-1), np.abs(dq[..., 0]))
+
+
+def rotation_rmse_deg(q_est: Float[ArrayLike, "n 4"], q_gt: Float[ArrayLike, "n 4"]) -> Metric:
+    """RMS geodesic rotation error in degrees (angle of ``q_est* q_gt``; sign-invariant)."""
+    q_est, q_gt = _as64(q_est), _as64(q_gt)
+    if q_est.shape != q_gt.shape:
+        raise ValueError(f"shape mismatch: {q_est.shape} vs {q_gt.shape}")
+    ok = _finite_rows(q_est) & _finite_rows(q_gt)
+    n = int(ok.sum())
+    if n == 0:
+        return _NAN
+    ang = _geodesic_angle(q_est[ok], q_gt[ok])
+    return Metric(float(np.degrees(np.sqrt(np.mean(ang**2)))), n)
+
+
+# ----------------------------------------------------------------------------------------------
+# smoothness
+# ----------------------------------------------------------------------------------------------
+
+
+def rms_jerk_position(times: Float[ArrayLike, " n"], positions: Float[ArrayLike, "n 3"]) -> Metric:
+    """RMS magnitude of the third derivative of position (m/s^3).
+
+    Each window of four consecutive finite samples gives ``6 x[t_i, ..., t_{i+3}]`` (six times
+    the third divided difference, i.e. the jerk of the interpolating cubic): exact for cubics on
+    any spacing, second-order accurate on a uniform grid. ``count`` = windows used.
+    """
+    t, x = _as64(times), _as64(positions)
+    _check_times(t, x.shape[0])
+    if x.shape[0] < 4:
+        return _NAN
+    win = _windows(x.shape[0], 4)
+    win = win[np.all(_finite_rows(x)[win], axis=1)]
+    if win.shape[0] == 0:
+        return _NAN
+    w = _fd_weights(t[win] - t[win[:, :1]], 3)
+    jerk = np.einsum("wj,wjd->wd", w, x[win])
+    return Metric(float(np.sqrt(np.mean(np.sum(jerk**2, axis=-1)))), int(win.shape[0]))
+
+
+def rms_jerk_rotation(
+    times: Float[ArrayLike, " n"], quaternions: Float[ArrayLike, "n 4"]
+) -> Metric:
+    """RMS magnitude of the angular jerk ``d^2 omega / dt^2`` (rad/s^3), world frame.
+
+    The angular velocity between consecutive samples is ``log(q_{i+1} q_i*) / dt`` (shortest arc,
+    so sign flips are harmless) placed at the interval midpoint; its second derivative uses the
+    three-point non-uniform stencil on those midpoints. Each value needs four consecutive finite
+    quaternions (``count`` = such windows). Exact for a fixed axis with cubic angle on a uniform
+    grid.
+    """
+    t, q = _as64(times), _as64(quaternions)
+    _check_times(t, q.shape[0])
+    if q.shape[0] < 4:
+        return _NAN
+    m, w = _angular_velocity_midpoints(t, q)
+    ok = np.all(_finite_rows(w)[_windows(w.shape[0], 3)], axis=1)
+    win = _windows(w.shape[0], 3)[ok]
+    if win.shape[0] == 0:
+        return _NAN
+    wts = _fd_weights(m[win] - m[win[:, 1:2]], 2)
+    jerk = np.einsum("wj,wjd->wd", wts, w[win])
+    return Metric(float(np.sqrt(np.mean(np.sum(jerk**2, axis=-1)))), int(win.shape[0]))
+
+
+def _curve_derivatives(times, positions):
+    t, x = _as64(times), _as64(positions)
+    _check_times(t, x.shape[0])
+    _, (d1, d2, d3) = _stencil_derivatives(t, x, (1, 2, 3), size=5)
+    return d1, d2, d3
+
+
+def mean_abs_curvature(
+    times: Float[ArrayLike, " n"], positions: Float[ArrayLike, "n 3"], *, min_speed: float = 1e-3
+) -> Metric:
+    """Mean curvature ``|r' x r''| / |r'|^3`` (1/m) of the sampled path.
+
+    Derivatives come from centred five-point stencils on the actual sample times (exact for
+    quartic paths); windows containing NaN are skipped. Samples with speed below
+    ``min_speed`` (m/s, default 1 mm/s) are skipped: there the curvature of a nearly stationary
+    path is dominated by noise (and undefined at rest). ``count`` = samples used. Unweighted mean
+    over samples (not per arc length).
+    """
+    d1, d2, _ = _curve_derivatives(times, positions)
+    speed = np.linalg.norm(d1, axis=-1)
+    ok = speed >= min_speed
+    if not np.any(ok):
+        return _NAN
+    kappa = np.linalg.norm(np.cross(d1[ok], d2[ok]), axis=-1) / speed[ok] ** 3
+    return Metric(float(np.mean(kappa)), int(ok.sum()))
+
+
+def mean_abs_torsion(
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    *,
+    min_speed: float = 1e-3,
+    min_cross: float = 1e-6,
+) -> Metric:
+    """Mean ``|(r' x r'') . r'''| / |r' x r''|^2`` (1/m) of the sampled path.
+
+    Same stencils as :func:`mean_abs_curvature`. Skips samples with speed below ``min_speed``
+    (m/s) or ``|r' x r''|`` below ``min_cross`` (m^2/s^3, default 1e-6): torsion is undefined on
+    straight segments (zero curvature). ``count`` = samples used.
+    """
+    d1, d2, d3 = _curve_derivatives(times, positions)
+    cross = np.cross(d1, d2)
+    cn = np.linalg.norm(cross, axis=-1)
+    ok = (np.linalg.norm(d1, axis=-1) >= min_speed) & (cn >= min_cross)
+    if not np.any(ok):
+        return _NAN
+    tau = np.abs(np.sum(cross[ok] * d3[ok], axis=-1)) / cn[ok] ** 2
+    return Metric(float(np.mean(tau)), int(ok.sum()))
+
+
+def _one_sided(t, x, idx, boundary_value_index):
+    """Second-order one-sided derivative at sample ``boundary_value_index`` from rows ``idx``."""
+    w = _fd_weights(t[idx] - t[boundary_value_index][:, None], 1)
+    return np.einsum("bj,bjd->bd", w, x[idx])
+
+
+def _boundary_windows(t, valid, boundary_times):
+    """For each boundary the 3 samples ending at the last ``t <= b`` and starting at the first
+    ``t >= b`` (a sample exactly at ``b`` belongs to both), and which boundaries have both."""
+    b = _as64(boundary_times).reshape(-1)
+    n = t.shape[0]
+    last = np.searchsorted(t, b, side="right") - 1  # last index with t <= b
+    first = np.searchsorted(t, b, side="left")  # first index with t >= b
+    left = last[:, None] + np.arange(-2, 1)[None, :]
+    right = first[:, None] + np.arange(0, 3)[None, :]
+    ok = (left[:, 0] >= 0) & (right[:, -1] < n)
+    left, right = np.clip(left, 0, n - 1), np.clip(right, 0, n - 1)
+    ok &= np.all(valid[left], axis=1) & np.all(valid[right], axis=1)
+    return left[ok], right[ok]
+
+
+def max_velocity_jump(
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    boundary_times: Float[ArrayLike, " b"],
+) -> Metric:
+    """Largest ``|v(b+) - v(b-)|`` (m/s) over the boundary times ``b`` (e.g. camera frames).
+
+    ``v(b-)`` is the second-order one-sided (three-point) derivative at the last render sample
+    with ``t <= b`` using it and the two samples before; ``v(b+)`` likewise at the first sample
+    with ``t >= b`` and the two after. Exact for piecewise-quadratic paths with the kink at
+    ``b``; for a smooth path the value is ``O(a dt)`` when ``b`` falls between samples (the
+    straddling interval is skipped). Boundaries without three finite samples on each side are
+    ignored; ``count`` = boundaries used.
+    """
+    t, x = _as64(times), _as64(positions)
+    _check_times(t, x.shape[0])
+    left, right = _boundary_windows(t, _finite_rows(x), boundary_times)
+    if left.shape[0] == 0:
+        return _NAN
+    v_minus = _one_sided(t, x, left, left[:, -1])
+    v_plus = _one_sided(t, x, right, right[:, 0])
+    jump = np.linalg.norm(v_plus - v_minus, axis=-1)
+    return Metric(float(np.max(jump)), int(left.shape[0]))
+
+
+def max_angular_velocity_jump(
+    times: Float[ArrayLike, " n"],
+    quaternions: Float[ArrayLike, "n 4"],
+    boundary_times: Float[ArrayLike, " b"],
+) -> Metric:
+    """Largest jump of the world-frame angular velocity (rad/s) at the boundary times.
+
+    As :func:`max_velocity_jump`, differentiating the rotation vectors ``log(q_j q_e*)`` of the
+    three samples on each side relative to the end sample ``e`` at the boundary.
+    """
+    t, q = _as64(times), _as64(quaternions)
+    _check_times(t, q.shape[0])
+    left, right = _boundary_windows(t, _finite_rows(q), boundary_times)
+    if left.shape[0] == 0:
+        return _NAN
+    q = _np_qnormalize(np.where(_finite_rows(q)[:, None], q, np.array([1.0, 0, 0, 0])))
+
+    def side(idx, e):
+        phi = _np_rotvec(_np_qmul(q[idx], _np_qconj(q[e])[:, None, :]))
+        w = _fd_weights(t[idx] - t[e][:, None], 1)
+        return np.einsum("bj,bjd->bd", w, phi)
+
+    jump = np.linalg.norm(side(right, right[:, 0]) - side(left, left[:, -1]), axis=-1)
+    return Metric(float(np.max(jump)), int(left.shape[0]))
+
+
+# ----------------------------------------------------------------------------------------------
+# latency
+# ----------------------------------------------------------------------------------------------
+
+
+def latency(
+    times: Float[ArrayLike, " n"],
+    est: Float[ArrayLike, "n d"],
+    gt: Float[ArrayLike, "n d"],
+    max_lag: float = 0.5,
+    *,
+    window: float | None = None,
+    kind: str | None = None,
+) -> Latency:
+    """Lag of ``est`` behind ``gt`` by cross-correlating their velocities.
+
+    Velocities are differences over ``s`` samples placed at interval midpoints: linear velocity
+    ``(x_{i+s} - x_i) / (t_{i+s} - t_i)`` for positions (``d == 3``), world-frame angular velocity
+    ``log(q_{i+s} q_i*) / (t_{i+s} - t_i)`` for quaternions (``d == 4``); ``kind="position"`` /
+    ``"rotation"`` overrides the shape rule. ``s = 1`` by default; ``window`` (s) sets
+    ``s = round(window / h)``, a box filter of width ``window`` on both velocities that suppresses
+    noise and staircase (hold) artefacts without moving the peak of a pure delay.
+    For candidate lags ``L = k h`` (``h`` = median spacing, ``|L| <= max_lag``) the estimate
+    velocity is linearly interpolated at ``m + L`` and the normalised (mean-removed, summed over
+    components) correlation with the ground-truth velocity at ``m`` is computed over samples
+    finite in both. The best integer lag is refined by a parabola through its neighbours
+    (not refined at the ends of the search range).
+
+    Returns:
+        ``Latency(lag, correlation, count)``; positive lag = estimate behind (``est(t) ~
+        gt(t - lag)``). NaN with count 0 when fewer than 3 common samples exist.
+
+    Cost ``O(n * max_lag / h)`` (one ``np.interp`` per candidate lag). For a zero-order-hold
+    staircase the estimate is about half the hold period minus half a render period (velocity
+    samples sit at interval midpoints).
+    """
+    t, e, g = _as64(times), _as64(est), _as64(gt)
+    if e.shape != g.shape or e.ndim != 2:
+        raise ValueError(f"est and gt must have the same (n, d) shape, got {e.shape}, {g.shape}")
+    _check_times(t, e.shape[0])
+    if kind is None:
+        kind = {3: "position", 4: "rotation"}.get(e.shape[1])
+    if kind not in ("position", "rotation"):
+        raise ValueError("kind must be 'position' or 'rotation' (or d must be 3 or 4)")
+    nan = Latency(float("nan"), float("nan"), 0)
+    if t.shape[0] < 4:
+        return nan
+    h = float(np.median(np.diff(t)))
+    span = 1 if window is None else max(1, int(round(window / h)))
+    if span >= t.shape[0]:
+        return nan
+    m, ve = _span_velocity(t, e, span, kind)
+    _, vg = _span_velocity(t, g, span, kind)
+    kmax = max(1, int(round(max_lag / h)))
+    lags = np.arange(-kmax, kmax + 1) * h
+    corr = np.full(lags.shape, np.nan)
+    counts = np.zeros(lags.shape, dtype=int)
+    g_ok = _finite_rows(vg)
+    for i, lag in enumerate(lags):
+        shifted = np.stack(
+            [np.interp(m + lag, m, vc, left=np.nan, right=np.nan) for vc in ve.T], axis=-1
+        )
+        ok = g_ok & _finite_rows(shifted)
+        cnt = int(ok.sum())
+        if cnt < 3:
+            continue
+        a = shifted[ok] - shifted[ok].mean(axis=0)
+        b = vg[ok] - vg[ok].mean(axis=0)
+        den = np.sqrt(np.sum(a * a) * np.sum(b * b))
+        if den > 0:
+            corr[i] = np.sum(a * b) / den
+            counts[i] = cnt
+    if not np.any(np.isfinite(corr)):
+        return nan
+    k = int(np.nanargmax(corr))
+    lag = lags[k]
+    if 0 < k < len(lags) - 1 and np.isfinite(corr[k - 1]) and np.isfinite(corr[k + 1]):
+        c0, c1, c2 = corr[k - 1], corr[k], corr[k + 1]
+        den = c0 - 2 * c1 + c2
+        if den < 0:
+            lag = lag + 0.5 * (c0 - c2) / den * h
+    return Latency(float(lag), float(corr[k]), int(counts[k]))
+
+
+# ----------------------------------------------------------------------------------------------
+# everything at once
+# ----------------------------------------------------------------------------------------------
+
+
+def evaluate(
+    times: Float[ArrayLike, " n"],
+    est_pos: Float[ArrayLike, "n 3"],
+    est_quat: Float[ArrayLike, "n 4"],
+    gt_pos: Float[ArrayLike, "n 3"],
+    gt_quat: Float[ArrayLike, "n 4"],
+    boundary_times: Float[ArrayLike, " b"] | None = None,
+    *,
+    max_lag: float = 0.5,
+    latency_window: float | None = 0.1,
+) -> dict[str, float]:
+    """All metrics of an estimated pose stream against ground truth at the same render times.
+
+    Returns a flat dict of floats; each metric ``name`` has a sample count ``name + "_n"``:
+
+    * ``position_rmse`` (m), ``rotation_rmse_deg`` (deg);
+    * ``jerk_position`` (m/s^3), ``jerk_rotation`` (rad/s^3) of the estimate, and
+      ``jerk_position_gt``, ``jerk_rotation_gt`` of the ground truth for reference;
+    * ``curvature``, ``torsion`` (1/m) of the estimated path (thresholds as in
+      :func:`mean_abs_curvature`, :func:`mean_abs_torsion`);
+    * ``velocity_jump`` (m/s), ``angular_velocity_jump`` (rad/s) at ``boundary_times``
+      (NaN when not given);
+    * ``latency_position``, ``latency_rotation`` (s) with ``..._corr`` (peak correlation), from
+      :func:`latency` with ``max_lag`` and ``window=latency_window`` (0.1 s velocity box filter
+      by default, which makes the estimate robust to measurement noise and hold staircases).
+
+    Metrics without usable samples (e.g. position metrics of orientation-only data) are NaN
+    with count 0.
+    """
+    out: dict[str, float] = {}
+
+    def put(name, res):
+        out[name] = res.value
+        if isinstance(res, Latency):
+            out[name + "_corr"] = res.correlation
+        out[name + "_n"] = res.count
+
+    put("position_rmse", position_rmse(est_pos, gt_pos))
+    put("rotation_rmse_deg", rotation_rmse_deg(est_quat, gt_quat))
+    put("jerk_position", rms_jerk_position(times, est_pos))
+    put("jerk_rotation", rms_jerk_rotation(times, est_quat))
+    put("jerk_position_gt", rms_jerk_position(times, gt_pos))
+    put("jerk_rotation_gt", rms_jerk_rotation(times, gt_quat))
+    put("curvature", mean_abs_curvature(times, est_pos))
+    put("torsion", mean_abs_torsion(times, est_pos))
+    if boundary_times is None:
+        put("velocity_jump", _NAN)
+        put("angular_velocity_jump", _NAN)
+    else:
+        put("velocity_jump", max_velocity_jump(times, est_pos, boundary_times))
+        put("angular_velocity_jump", max_angular_velocity_jump(times, est_quat, boundary_times))
+    lat = dict(max_lag=max_lag, window=latency_window)
+    put("latency_position", latency(times, est_pos, gt_pos, kind="position", **lat))
+    put("latency_rotation", latency(times, est_quat, gt_quat, kind="rotation", **lat))
+    return out

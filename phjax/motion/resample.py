@@ -1,0 +1,206 @@
+"""Pose interpolation on irregular, gappy measurement streams and finite-difference velocities.
+
+Measurements are given as plain arrays ``times (N,)``, ``positions (N, 3)`` and ``quaternions
+(N, 4)`` (``wxyz``). ``times`` must be finite and non-decreasing. A *dropped* measurement is a
+row containing NaN; positions and orientations are treated as separate channels, so a row with
+NaN position but a finite quaternion (orientation-only data) still contributes its orientation.
+
+Invalid rows are skipped with a **mask approach** that keeps every shape static, so the functions
+here are ``jit``/``vmap``/``grad``-compatible: for each query the bracketing valid samples are found
+with ``searchsorted`` plus running ``cummax``/``cummin`` of the valid indices (no compaction).
+Invalid rows are replaced by harmless finite values before any arithmetic, so gradients never see
+NaN.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from .._misc import safe_div
+from ..quaternion import quat_conj, quat_mul, quat_normalize, quat_slerp, quat_to_rotvec
+
+__all__ = ["interpolate_poses", "finite_difference_velocities", "valid_rows"]
+
+
+def valid_rows(x: Float[ArrayLike, "n k"]) -> Bool[Array, " n"]:
+    """``True`` for rows of ``x`` whose entries are all finite."""
+    return jnp.all(jnp.isfinite(jnp.asarray(x)), axis=-1)
+
+
+def _bracket(
+    valid: Bool[Array, " n"], k: Int[Array, " m"]
+) -> tuple[Int[Array, " m"], Int[Array, " m"]]:
+    """Indices of the last valid sample ``<= k`` and the first valid sample ``> k``.
+
+    ``k`` is the index of the last sample with ``t <= query`` (``-1`` when none). Missing
+    neighbours are reported as ``-1`` (no previous) and ``n`` (no next).
+    """
+    n = valid.shape[0]
+    idx = jnp.arange(n)
+    last = lax.cummax(jnp.where(valid, idx, -1), axis=0)
+    first = lax.cummin(jnp.where(valid, idx, n), axis=0, reverse=True)
+    prev = jnp.where(k >= 0, last[jnp.clip(k, 0, n - 1)], -1)
+    nxt = jnp.where(k + 1 < n, first[jnp.clip(k + 1, 0, n - 1)], n)
+    return prev, nxt
+
+
+def _interp_weights(times, valid, k, query, max_gap):
+    """Left/right sample indices, slerp/lerp fraction and an output-valid flag per query."""
+    n = times.shape[0]
+    prev, nxt = _bracket(valid, k)
+    has_prev, has_next = prev >= 0, nxt < n
+    # clamp: with only one neighbour use it on both sides (fraction becomes irrelevant)
+    i0 = jnp.clip(jnp.where(has_prev, prev, nxt), 0, n - 1)
+    i1 = jnp.clip(jnp.where(has_next, nxt, prev), 0, n - 1)
+    t0, t1 = times[i0], times[i1]
+    s = jnp.clip(safe_div(query - t0, t1 - t0), 0, 1)
+    ok = has_prev | has_next
+    if max_gap is not None:
+        inside = has_prev & has_next & (query > t0) & (query < t1)
+        ok = ok & ~(inside & (t1 - t0 > max_gap))
+    return i0, i1, s, ok
+
+
+@jax.jit
+def interpolate_poses(
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    quaternions: Float[ArrayLike, "n 4"],
+    query_times: Float[ArrayLike, " m"],
+    *,
+    max_gap: float | Float[ArrayLike, ""] | None = None,
+) -> tuple[Float[Array, "m 3"], Float[Array, "m 4"]]:
+    """Linear position and slerp orientation interpolation at ``query_times``.
+
+    Arguments:
+        times: measurement times, finite and non-decreasing.
+        positions: positions; rows containing NaN are skipped (position channel only).
+        quaternions: ``wxyz`` orientations (normalised here); NaN rows are skipped (orientation
+            channel only). Slerp takes the shortest arc, so ``q``/``-q`` flips are harmless.
+        query_times: where to interpolate (any order).
+        max_gap: optional maximum spacing (s) between the two valid samples bracketing a query;
+            a query strictly inside a longer gap gives NaN. Queries exactly at a valid sample
+            and queries outside the valid range are unaffected.
+
+    Returns:
+        ``(positions (m, 3), quaternions (m, 4))``. Queries before the first / after the last
+        valid sample are clamped to that end pose (no extrapolation). A channel with no valid
+        sample at all gives NaN.
+    """
+    times = jnp.asarray(times)
+    positions = jnp.asarray(positions)
+    quaternions = jnp.asarray(quaternions)
+    query = jnp.asarray(query_times)
+    n = times.shape[0]
+    if n == 0 or positions.shape != (n, 3) or quaternions.shape != (n, 4) or query.ndim != 1:
+        raise ValueError(
+            "expected times (n,), positions (n, 3), quaternions (n, 4) with n >= 1 and 1-D "
+            f"query_times; got {times.shape}, {positions.shape}, {quaternions.shape}, {query.shape}"
+        )
+    k = jnp.searchsorted(times, query, side="right") - 1
+
+    vp = valid_rows(positions)
+    p = jnp.where(vp[:, None], positions, 0)
+    i0, i1, s, ok = _interp_weights(times, vp, k, query, max_gap)
+    s = s.astype(p.dtype)[:, None]
+    p_out = p[i0] + s * (p[i1] - p[i0])
+    p_out = jnp.where(ok[:, None], p_out, jnp.asarray(jnp.nan, p_out.dtype))
+
+    vq = valid_rows(quaternions)
+    ident = jnp.asarray([1, 0, 0, 0], quaternions.dtype)
+    q = quat_normalize(jnp.where(vq[:, None], quaternions, ident))
+    i0, i1, s, ok = _interp_weights(times, vq, k, query, max_gap)
+    q_out = quat_slerp(q[i0], q[i1], s.astype(q.dtype))
+    q_out = jnp.where(ok[:, None], q_out, jnp.asarray(jnp.nan, q_out.dtype))
+    return p_out, q_out
+
+
+def _diff_weights(t: Float[Array, " n"]):
+    """Second-order three-point first-derivative weights on a non-uniform grid (``n >= 3``).
+
+    Returns ``(wm, w0, wp)`` for interior points (nodes ``i-1, i, i+1``) and the one-sided weights
+    ``(a0, a1, a2)`` at the start (nodes ``0, 1, 2``) and ``(b0, b1, b2)`` at the end (nodes
+    ``n-3, n-2, n-1``). All are exact for quadratics.
+    """
+    h = jnp.diff(t)
+    h1, h2 = h[:-1], h[1:]
+    hs = h1 + h2
+    interior = (
+        safe_div(-h2, h1 * hs),
+        safe_div(h2 - h1, h1 * h2),
+        safe_div(h1, h2 * hs),
+    )
+    g1, g2 = h[0], h[1]
+    start = (
+        safe_div(-(2 * g1 + g2), g1 * (g1 + g2)),
+        safe_div(g1 + g2, g1 * g2),
+        safe_div(-g1, g2 * (g1 + g2)),
+    )
+    e1, e2 = h[-2], h[-1]
+    end = (
+        safe_div(e2, e1 * (e1 + e2)),
+        safe_div(-(e1 + e2), e1 * e2),
+        safe_div(e1 + 2 * e2, e2 * (e1 + e2)),
+    )
+    return interior, start, end
+
+
+@jax.jit
+def finite_difference_velocities(
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    quaternions: Float[ArrayLike, "n 4"],
+) -> tuple[Float[Array, "n 3"], Float[Array, "n 3"]]:
+    """Linear and world-frame angular velocity by finite differences.
+
+    Interior samples use the second-order three-point central formula for non-uniform spacing
+    (exact for quadratics); the two end samples use second-order one-sided three-point formulas
+    (first-order two-point differences when ``n == 2``). Angular velocity differentiates the
+    rotation vectors ``phi_j = log(q_j q_i*)`` of the neighbours relative to sample ``i``
+    (``d phi / dt = omega_world`` at ``t_i`` and ``d^2 phi / dt^2 = d omega / dt`` there, so the
+    formula keeps its second order); the shortest-arc log makes it insensitive to ``q``/``-q``
+    flips. The angular velocity ``omega`` satisfies ``dq/dt = 0.5 (0, omega) q``.
+
+    Arguments:
+        times: strictly increasing sample times (duplicate times give 0 weights, not inf).
+        positions: positions ``(n, 3)``.
+        quaternions: ``wxyz`` orientations ``(n, 4)`` (normalised here).
+
+    Returns:
+        ``(velocity (n, 3), angular_velocity (n, 3))`` in units/s and rad/s. Inputs must be free
+        of NaN: a NaN row propagates to its neighbours' derivatives.
+    """
+    t = jnp.asarray(times)
+    p = jnp.asarray(positions)
+    q = quat_normalize(jnp.asarray(quaternions))
+    n = t.shape[0]
+    if n < 2 or p.shape != (n, 3) or q.shape != (n, 4):
+        raise ValueError(
+            "expected times (n,), positions (n, 3), quaternions (n, 4) with n >= 2; got "
+            f"{t.shape}, {p.shape}, {q.shape}"
+        )
+    # consecutive world-frame relative rotation vectors: q_{i+1} = exp(d1_i / 2) q_i
+    d1 = quat_to_rotvec(quat_mul(q[1:], quat_conj(q[:-1])))
+    if n == 2:
+        dt = (t[1] - t[0]).astype(p.dtype)
+        v = safe_div(p[1] - p[0], dt)
+        w = safe_div(d1[0], dt)
+        return jnp.stack([v, v]), jnp.stack([w, w])
+    (wm, w0, wp), (a0, a1, a2), (b0, b1, b2) = _diff_weights(t.astype(p.dtype))
+    col = lambda x: x[:, None]  # noqa: E731
+    v_int = col(wm) * p[:-2] + col(w0) * p[1:-1] + col(wp) * p[2:]
+    v_start = a0 * p[0] + a1 * p[1] + a2 * p[2]
+    v_end = b0 * p[-3] + b1 * p[-2] + b2 * p[-1]
+    v = jnp.concatenate([v_start[None], v_int, v_end[None]])
+
+    # rotation vectors of neighbours relative to the evaluation sample (phi_i = 0)
+    d2_start = quat_to_rotvec(quat_mul(q[2], quat_conj(q[0])))
+    d2_end = quat_to_rotvec(quat_mul(q[-3], quat_conj(q[-1])))
+    w_int = -col(wm) * d1[:-1] + col(wp) * d1[1:]
+    w_start = a1 * d1[0] + a2 * d2_start
+    w_end = b0 * d2_end - b1 * d1[-1]
+    w = jnp.concatenate([w_start[None], w_int.astype(v.dtype), w_end[None]])
+    return v, w

@@ -1,0 +1,267 @@
+"""Synthetic head motion and a simple pose-sensor model (noise, dropouts, jitter, latency).
+
+Conventions: ``wxyz`` quaternions rotating head-frame vectors into the world frame; world axes
+``x`` right, ``y`` up, ``-z`` forward (OpenXR / OpenGL); metres, seconds, radians.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from .._np_quat import np_from_rotvec as _np_from_rotvec
+from .._np_quat import np_qconj as _np_qconj
+from .._np_quat import np_qmul as _np_qmul
+from ..quaternion import quat_from_rotvec, quat_mul
+from .resample import interpolate_poses
+
+__all__ = ["SensorModel", "simulate_measurements", "synthetic_head_motion"]
+
+
+class SensorModel(eqx.Module):
+    """Pose sensor (e.g. a camera-based head tracker) producing noisy, lossy samples.
+
+    Attributes:
+        rate: nominal sample rate (Hz).
+        sigma_p: position noise, iid ``N(0, sigma_p^2)`` per component (m).
+        sigma_r: orientation noise: rotation vector ``n`` with iid ``N(0, sigma_r^2)``
+            components (rad), applied in the world frame as ``q_meas = exp(n) q_true``.
+        dropout: probability that a frame is lost (its row becomes NaN, its time is kept).
+        jitter: std of the timestamp jitter as a fraction of the period; each offset is clipped
+            to ``+-0.45`` periods so the times stay strictly increasing.
+        latency: delay (s) between the instant a pose is sampled and its timestamp: the sample
+            stamped ``t`` shows the ground truth at ``t - latency``.
+    """
+
+    rate: float = 30.0
+    sigma_p: float = 0.005
+    sigma_r: float = float(np.deg2rad(1.0))
+    dropout: float = 0.05
+    jitter: float = 0.0
+    latency: float = 0.0
+
+
+def _as_key(key_or_seed) -> Array:
+    if isinstance(key_or_seed, (int, np.integer)):
+        return jax.random.key(int(key_or_seed))
+    return key_or_seed
+
+
+def simulate_measurements(
+    key_or_seed: int | Array,
+    gt_times: Float[ArrayLike, " n"],
+    gt_positions: Float[ArrayLike, "n 3"],
+    gt_quaternions: Float[ArrayLike, "n 4"],
+    model: SensorModel = SensorModel(),
+) -> tuple[Float[Array, " m"], Float[Array, "m 3"], Float[Array, "m 4"]]:
+    """Sample a ground-truth trajectory with the sensor ``model``.
+
+    Sampling instants form the grid ``s_k = t_0 + k / rate`` (``k = 0, 1, ...`` while
+    ``s_k <= t_end`` of the ground truth), optionally jittered (clipped to the ground-truth
+    range). The ground truth is interpolated there with :func:`~phjax.motion.resample.interpolate_poses`
+    (linear / slerp; NaN ground-truth rows are skipped), noise is added, and each frame is
+    dropped with probability ``dropout`` (NaN row). Returned timestamps are ``s_k + latency``.
+
+    Orientation-only ground truth (NaN positions) gives NaN positions and noisy orientations.
+    Deterministic for a given key / integer seed and dtype (JAX draws different samples in
+    float32 and float64). Not ``jit``-able as a whole (the number of
+    samples depends on the ground-truth time range); the per-sample work is vectorised.
+
+    Arguments:
+        key_or_seed: a ``jax.random`` key or an integer seed.
+        gt_times, gt_positions, gt_quaternions: ground truth (``wxyz``), times non-decreasing.
+        model: the :class:`SensorModel`.
+
+    Returns:
+        ``(times (m,), positions (m, 3), quaternions (m, 4))`` in the ground-truth dtype.
+    """
+    gt_t = np.asarray(gt_times, dtype=np.float64)
+    if gt_t.ndim != 1 or gt_t.size == 0 or not np.all(np.isfinite(gt_t)):
+        raise ValueError("gt_times must be a non-empty 1-D array of finite times")
+    if np.any(np.diff(gt_t) < 0):
+        raise ValueError("gt_times must be sorted")
+    rate, jitter = float(model.rate), float(model.jitter)
+    if not rate > 0:
+        raise ValueError(f"rate must be positive, got {rate}")
+    if not (0 <= float(model.dropout) < 1):
+        raise ValueError(f"dropout must be in [0, 1), got {model.dropout}")
+    if min(float(model.sigma_p), float(model.sigma_r), jitter) < 0:
+        raise ValueError("sigma_p, sigma_r and jitter must be non-negative")
+    gt_p = jnp.asarray(gt_positions)
+    gt_q = jnp.asarray(gt_quaternions)
+    dtype = jnp.result_type(gt_p, gt_q, jnp.float32)
+
+    t0, t1 = gt_t[0], gt_t[-1]
+    m = int(np.floor((t1 - t0) * rate + 1e-9)) + 1
+    k_jit, k_p, k_r, k_drop = jax.random.split(_as_key(key_or_seed), 4)
+    period = 1.0 / rate
+    sample_t = t0 + np.arange(m) * period
+    if jitter > 0:
+        offs = np.asarray(jax.random.normal(k_jit, (m,)), dtype=np.float64) * jitter
+        sample_t = np.clip(sample_t + np.clip(offs, -0.45, 0.45) * period, t0, t1)
+
+    p_true, q_true = interpolate_poses(
+        jnp.asarray(gt_t, dtype),
+        gt_p.astype(dtype),
+        gt_q.astype(dtype),
+        jnp.asarray(sample_t, dtype),
+    )
+    p_meas = p_true + model.sigma_p * jax.random.normal(k_p, (m, 3), dtype)
+    noise = model.sigma_r * jax.random.normal(k_r, (m, 3), dtype)
+    q_meas = quat_mul(quat_from_rotvec(noise), q_true)
+    lost = jax.random.uniform(k_drop, (m,), dtype) < model.dropout
+    nan = jnp.asarray(jnp.nan, dtype)
+    p_meas = jnp.where(lost[:, None], nan, p_meas)
+    q_meas = jnp.where(lost[:, None], nan, q_meas)
+    times = jnp.asarray(sample_t + float(model.latency), dtype)
+    return times, p_meas, q_meas
+
+
+# ----------------------------------------------------------------------------------------------
+# synthetic head motion
+# ----------------------------------------------------------------------------------------------
+
+_NECK_TO_EYES = np.array([0.0, 0.10, -0.08])  # head frame: 10 cm up, 8 cm forward of the pivot
+_PIVOT = np.array([0.0, 1.10, 0.08])  # seated neck pivot (eyes at (0, 1.20, 0) when at rest)
+
+
+def _min_jerk(u: np.ndarray) -> np.ndarray:
+    u = np.clip(u, 0.0, 1.0)
+    return u**3 * (10 - 15 * u + 6 * u**2)
+
+
+def _axis_quat(angle: np.ndarray, axis: int) -> np.ndarray:
+    q = np.zeros(angle.shape + (4,))
+    q[..., 0] = np.cos(angle / 2)
+    q[..., 1 + axis] = np.sin(angle / 2)
+    return q
+
+
+def _sum_of_sines(t, rng, n, f_lo, f_hi, amp):
+    """Sum of ``n`` sinusoids with log-uniform frequencies in ``[f_lo, f_hi]`` Hz, random phases
+    and amplitudes ``amp * U(0.5, 1) / sqrt(n)``."""
+    f = np.exp(rng.uniform(np.log(f_lo), np.log(f_hi), n))
+    ph = rng.uniform(0, 2 * np.pi, n)
+    a = amp * rng.uniform(0.5, 1.0, n) / np.sqrt(n)
+    return np.sum(a[:, None] * np.sin(2 * np.pi * f[:, None] * t[None, :] + ph[:, None]), axis=0)
+
+
+def _gaze_schedule(duration: float, rng: np.random.Generator):
+    """Movement segments ``(start, length, d_yaw, d_pitch, d_roll)`` in seconds and radians."""
+    segs = []
+    yaw, pitch, roll = 0.0, np.deg2rad(-3.0), 0.0
+    t = rng.uniform(0.3, 1.5)
+    pending_return = None
+    while t < duration:
+        if pending_return is not None:
+            dy, dp, dr = pending_return
+            pending_return = None
+        else:
+            amp = np.deg2rad(10 + 80 * rng.uniform() ** 1.5)
+            toward_centre = rng.uniform() < 0.5 + 0.45 * min(abs(yaw) / np.deg2rad(90), 1.0)
+            sign = -np.sign(yaw) if (toward_centre and yaw != 0) else rng.choice([-1.0, 1.0])
+            if abs(yaw + sign * amp) > np.deg2rad(110):
+                sign = -sign
+            dy = sign * amp
+            new_pitch = rng.normal(np.deg2rad(-3), np.deg2rad(8))
+            dp = np.clip(new_pitch, np.deg2rad(-25), np.deg2rad(20)) - pitch
+            dr = np.clip(rng.normal(0, np.deg2rad(2.5)), np.deg2rad(-8), np.deg2rad(8)) - roll
+        total = np.sqrt(dy * dy + dp * dp + dr * dr)
+        v_peak = np.deg2rad(np.clip(110 * np.exp(0.45 * rng.normal()), 40, 300))
+        length = float(np.clip(1.875 * total / v_peak, 0.3, 1.2))  # min-jerk peak = 1.875 A / T
+        segs.append((t, length, dy, dp, dr))
+        yaw, pitch, roll = yaw + dy, pitch + dp, roll + dr
+        t += length
+        if rng.uniform() < 0.3:  # look back and forth: return after a short fixation
+            pending_return = (-dy, -dp, -dr)
+            t += rng.uniform(0.3, 1.0)
+            continue
+        fix = float(np.exp(rng.uniform(np.log(0.3), np.log(3.0))))
+        if fix > 1.2 and rng.uniform() < 0.35:  # a nod inside a long fixation
+            depth = min(np.deg2rad(rng.uniform(8, 20)), pitch + np.deg2rad(30))
+            t_down = rng.uniform(0.3, 0.6)
+            t_nod = t + rng.uniform(0.1, 0.3)
+            segs.append((t_nod, t_down, 0.0, -depth, 0.0))
+            segs.append((t_nod + t_down + rng.uniform(0.1, 0.3), t_down, 0.0, depth, 0.0))
+            fix = max(fix, 2 * t_down + 0.7)
+        t += fix
+    return np.array(segs, dtype=np.float64).reshape(-1, 5)
+
+
+def synthetic_head_motion(
+    duration: float = 60.0, rate: float = 240.0, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Seated VR head motion: gaze shifts, fixations, nods, sway and tremor (ground truth).
+
+    Model (all random choices from ``numpy.random.default_rng(seed)``):
+
+    * **Gaze shifts.** Fixations (log-uniform 0.3-3 s) alternate with joint yaw/pitch/roll
+      movements following minimum-jerk profiles ``10u^3 - 15u^4 + 6u^5``. Yaw amplitude
+      ``10 + 80 U^1.5`` degrees (more small turns than large), direction biased towards the
+      centre and yaw kept within +-110 deg; new pitch target ``N(-3, 8)`` deg clipped to
+      [-25, 20]; new roll target ``N(0, 2.5)`` deg clipped to +-8. The peak speed is drawn
+      log-normally (median 110 deg/s, clipped to 40-300 deg/s) and sets the duration
+      ``T = 1.875 A / v_peak`` clipped to 0.3-1.2 s, so peaks stay <= 300 deg/s (typically
+      50-150 deg/s). With probability 0.3 a turn is undone after a 0.3-1 s fixation
+      (looking back and forth).
+    * **Nods.** In 35% of fixations longer than 1.2 s: pitch down 8-20 deg (kept above -30 deg)
+      over 0.3-0.6 s, hold 0.1-0.3 s, and back up.
+    * **Sway.** Slow angular sway: per axis a sum of 3 sinusoids, 0.05-0.5 Hz, ~0.6 deg total.
+      Torso translation: per axis 3 sinusoids, 0.05-0.5 Hz, ~2 cm horizontally and 0.5 cm
+      vertically.
+    * **Tremor.** Per axis one 8-12 Hz sinusoid of amplitude 0.1 deg, amplitude-modulated at
+      0.1-0.3 Hz between 50 and 100%.
+    * **Kinematics.** ``q = q_y(yaw) q_x(pitch) q_z(roll) exp(sway + tremor)`` (head-frame
+      perturbation); the eye-centre position is ``pivot + torso_sway + R(q) (0, 0.10, -0.08)``
+      with the neck pivot 10 cm below and 8 cm behind the eyes (``pivot = (0, 1.10, 0.08)`` m).
+
+    Every component is C2 (minimum-jerk segments have zero velocity and acceleration at both
+    ends; the sinusoids are smooth), so the ground truth is C2 in position and orientation.
+
+    Returns:
+        ``(times (n,), positions (n, 3), quaternions (n, 4))`` as float64 NumPy arrays with
+        ``times = arange(n) / rate`` covering ``[0, duration]``; quaternions are ``wxyz``,
+        hemisphere-continuous.
+    """
+    if not (duration > 0 and rate > 0):
+        raise ValueError("duration and rate must be positive")
+    rng = np.random.default_rng(seed)
+    n = int(round(duration * rate)) + 1
+    t = np.arange(n) / rate
+
+    segs = _gaze_schedule(duration, rng)
+    u = (t[None, :] - segs[:, :1]) / segs[:, 1:2]
+    prof = _min_jerk(u)  # (segments, n)
+    yaw = prof.T @ segs[:, 2]
+    pitch = np.deg2rad(-3.0) + prof.T @ segs[:, 3]
+    roll = prof.T @ segs[:, 4]
+
+    sway = np.stack([_sum_of_sines(t, rng, 3, 0.05, 0.5, np.deg2rad(0.6)) for _ in range(3)], -1)
+    tremor = []
+    for _ in range(3):
+        f = rng.uniform(8, 12)
+        fm, pm, ph = rng.uniform(0.1, 0.3), rng.uniform(0, 2 * np.pi), rng.uniform(0, 2 * np.pi)
+        am = 0.75 + 0.25 * np.sin(2 * np.pi * fm * t + pm)
+        tremor.append(np.deg2rad(0.1) * am * np.sin(2 * np.pi * f * t + ph))
+    perturb = sway + np.stack(tremor, -1)
+
+    q = _np_qmul(_np_qmul(_axis_quat(yaw, 1), _axis_quat(pitch, 0)), _axis_quat(roll, 2))
+    q = _np_qmul(q, _np_from_rotvec(perturb))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    flips = np.sum(q[1:] * q[:-1], axis=-1) < 0
+    q *= np.concatenate([[1.0], np.cumprod(np.where(flips, -1.0, 1.0))])[:, None]
+
+    torso = np.stack(
+        [
+            _sum_of_sines(t, rng, 3, 0.05, 0.5, 0.02),
+            _sum_of_sines(t, rng, 3, 0.05, 0.5, 0.005),
+            _sum_of_sines(t, rng, 3, 0.05, 0.5, 0.02),
+        ],
+        -1,
+    )
+    offset = _np_qmul(_np_qmul(q, np.concatenate([[0.0], _NECK_TO_EYES])), _np_qconj(q))[:, 1:]
+    positions = _PIVOT + torso + offset
+    return t, positions, q

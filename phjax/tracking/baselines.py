@@ -1,0 +1,395 @@
+"""Baseline pose trackers sharing the tracker interface of :mod:`phjax`.
+
+Every method has the signature::
+
+    fn(times (N,), positions (N, 3), quaternions (N, 4) wxyz, render_times (M,), **params)
+        -> (positions (M, 3), quaternions (M, 4))
+
+Measurement rows containing NaN (dropped frames) are skipped; positions and orientations are
+separate channels (a NaN position with a finite quaternion still updates the orientation).
+``times`` must be finite and non-decreasing; in float32 use times relative to the start of the
+stream (absolute UNIX timestamps lose sub-millisecond resolution).
+
+* **Causal** methods (:func:`hold`, :func:`one_euro`, :func:`one_euro_numpy`): the output at render
+  time ``tau`` depends only on measurements with ``t <= tau``; render times before the first
+  valid measurement of a channel give NaN.
+* **Offline** methods (:func:`linear_slerp`, :func:`cubic_spline`) use all measurements (not
+  causal); render times outside the valid range are clamped to the end poses.
+
+:func:`hold`, :func:`one_euro` and :func:`linear_slerp` are JAX (``jit``-compiled, dtype-generic;
+:func:`one_euro` is differentiable in its parameters). :func:`one_euro_numpy` (float64 reference
+loop) and :func:`cubic_spline` (SciPy) return NumPy arrays.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jaxtyping import Array, ArrayLike, Float
+
+from .._misc import safe_div, safe_norm
+from .._np_quat import np_from_rotvec as _np_from_rotvec
+from .._np_quat import np_hemisphere as _np_hemisphere
+from .._np_quat import np_qconj as _np_qconj
+from .._np_quat import np_qmul as _np_qmul
+from .._np_quat import np_qnormalize as _np_qnormalize
+from .._np_quat import np_rotvec as _np_rotvec
+from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
+from ..motion.resample import interpolate_poses, valid_rows
+
+__all__ = [
+    "TUNED",
+    "hold",
+    "one_euro",
+    "one_euro_numpy",
+    "linear_slerp",
+    "cubic_spline",
+    "kalman_extrapolation",
+    "wxyz_to_xyzw",
+    "xyzw_to_wxyz",
+]
+
+#: Baseline parameters tuned for the lowest RMSE on the development set
+#: (``experiments/tune_baselines.py``). Position and rotation are tuned separately where the
+#: method allows it.
+TUNED: dict[str, dict] = {
+    "kalman": dict(pos_process_noise=0.03, rot_process_noise=0.3),
+    "one_euro_position": dict(min_cutoff=0.3, beta=100.0),
+    "one_euro_rotation": dict(min_cutoff=0.3, beta=10.0),
+}
+
+_IDENTITY = (1.0, 0.0, 0.0, 0.0)
+
+
+def wxyz_to_xyzw(q: Float[ArrayLike, "... 4"]):
+    """Scalar-first ``(w, x, y, z)`` to scalar-last ``(x, y, z, w)`` (SciPy's order)."""
+    return q[..., [1, 2, 3, 0]]
+
+
+def xyzw_to_wxyz(q: Float[ArrayLike, "... 4"]):
+    """Scalar-last ``(x, y, z, w)`` (SciPy's order) to scalar-first ``(w, x, y, z)``."""
+    return q[..., [3, 0, 1, 2]]
+
+
+def _check_inputs(times, positions, quaternions, render_times):
+    n = times.shape[0]
+    if positions.shape != (n, 3) or quaternions.shape != (n, 4) or times.ndim != 1:
+        raise ValueError(
+            "expected times (n,), positions (n, 3), quaternions (n, 4); got "
+            f"{times.shape}, {positions.shape}, {quaternions.shape}"
+        )
+    if n == 0 or render_times.ndim != 1:
+        raise ValueError("need at least one measurement and 1-D render_times")
+
+
+# ----------------------------------------------------------------------------------------------
+# zero-order hold
+# ----------------------------------------------------------------------------------------------
+
+
+def _hold_channel(x: Array, valid: Array, k: Array) -> Array:
+    """Row of the last valid sample with index ``<= k`` (NaN when there is none)."""
+    n = x.shape[0]
+    last = lax.cummax(jnp.where(valid, jnp.arange(n), -1), axis=0)
+    i = jnp.where(k >= 0, last[jnp.clip(k, 0, n - 1)], -1)
+    return jnp.where((i >= 0)[:, None], x[jnp.clip(i, 0, n - 1)], jnp.asarray(jnp.nan, x.dtype))
+
+
+@jax.jit
+def hold(
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    quaternions: Float[ArrayLike, "n 4"],
+    render_times: Float[ArrayLike, " m"],
+) -> tuple[Float[Array, "m 3"], Float[Array, "m 4"]]:
+    """Zero-order hold: the latest valid measurement with ``t <= tau`` (causal).
+
+    Returns the measured pose unchanged (quaternion sign included); NaN before the first valid
+    measurement of each channel.
+    """
+    times, positions = jnp.asarray(times), jnp.asarray(positions)
+    quaternions, render_times = jnp.asarray(quaternions), jnp.asarray(render_times)
+    _check_inputs(times, positions, quaternions, render_times)
+    k = jnp.searchsorted(times, render_times, side="right") - 1
+    return (
+        _hold_channel(positions, valid_rows(positions), k),
+        _hold_channel(quaternions, valid_rows(quaternions), k),
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# One Euro filter
+# ----------------------------------------------------------------------------------------------
+
+
+def _alpha(te, cutoff):
+    """Smoothing factor ``1 / (1 + tau / Te)`` with ``tau = 1 / (2 pi fc)``, written as
+    ``r / (r + 1)``, ``r = 2 pi fc Te`` so that ``Te = 0`` gives 0 (no update)."""
+    r = 2 * jnp.pi * cutoff * te
+    return r / (r + 1)
+
+
+@jax.jit
+def one_euro(
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    quaternions: Float[ArrayLike, "n 4"],
+    render_times: Float[ArrayLike, " m"],
+    *,
+    min_cutoff: float | Float[ArrayLike, ""] = 1.0,
+    beta: float | Float[ArrayLike, ""] = 0.0,
+    d_cutoff: float | Float[ArrayLike, ""] = 1.0,
+) -> tuple[Float[Array, "m 3"], Float[Array, "m 4"]]:
+    """One Euro filter (Casiez, Roussel & Vogel, CHI 2012) on positions and orientations, then hold.
+
+    Per valid measurement ``x`` at ``t`` with ``Te = t - t_prev`` (previous valid measurement of
+    the same channel): ``dx = (x - x_hat) / Te``; ``dx_hat += alpha(Te, d_cutoff) (dx - dx_hat)``;
+    ``fc = min_cutoff + beta |dx_hat|``; ``x_hat += alpha(Te, fc) (x - x_hat)`` with
+    ``alpha = 1 / (1 + tau / Te)``, ``tau = 1 / (2 pi fc)``. The first valid sample initialises
+    ``x_hat = x``, ``dx_hat = 0``. Positions use the speed ``|dx_hat|`` of the 3-vector (one
+    isotropic filter rather than one per axis). Orientations use the tangent space: ``e =
+    log(q q_hat*)`` (world-frame rotation vector, shortest arc, so ``q``/``-q`` flips are
+    harmless), angular velocity ``e / Te`` filtered like ``dx``, cutoff from the filtered angular
+    speed, and ``q_hat <- exp(alpha e) q_hat`` (slerp towards the measurement by ``alpha``).
+    Units: seconds, Hz (cutoffs), m/s and rad/s (``beta`` in s/m resp. s/rad). A measurement with
+    the same timestamp as the previous one has ``Te = 0`` and is ignored.
+
+    The filtered state at each measurement is held until the next one (causal; NaN before the
+    first valid measurement). Implemented with ``lax.scan``; differentiable with respect to
+    ``min_cutoff``, ``beta`` and ``d_cutoff`` (NaN rows never enter the arithmetic).
+
+    Returns:
+        ``(positions (m, 3), quaternions (m, 4))`` at ``render_times``.
+    """
+    times, positions = jnp.asarray(times), jnp.asarray(positions)
+    quaternions, render_times = jnp.asarray(quaternions), jnp.asarray(render_times)
+    _check_inputs(times, positions, quaternions, render_times)
+    dtype = jnp.result_type(positions, quaternions, times)
+    t = times.astype(dtype)
+    min_cutoff, beta, d_cutoff = (jnp.asarray(v, dtype) for v in (min_cutoff, beta, d_cutoff))
+    vp, vq = valid_rows(positions), valid_rows(quaternions)
+    ident = jnp.asarray(_IDENTITY, dtype)
+    p = jnp.where(vp[:, None], positions, 0).astype(dtype)
+    q = quat_normalize(jnp.where(vq[:, None], quaternions, ident).astype(dtype))
+
+    def step(state, inp):
+        (init_p, tp, xh, dxh), (init_q, tq, qh, wh) = state
+        ti, xi, ok_p, qi, ok_q = inp
+
+        # positions
+        te = ti - tp
+        a_d = _alpha(te, d_cutoff)
+        dx = safe_div(xi - xh, te)
+        dxh_new = dxh + a_d * (dx - dxh)
+        a = _alpha(te, min_cutoff + beta * safe_norm(dxh_new))
+        xh_new = xh + a * (xi - xh)
+        xh_new = jnp.where(init_p, xh_new, xi)
+        dxh_new = jnp.where(init_p, dxh_new, 0)
+        pos_state = (
+            init_p | ok_p,
+            jnp.where(ok_p, ti, tp),
+            jnp.where(ok_p, xh_new, xh),
+            jnp.where(ok_p, dxh_new, dxh),
+        )
+
+        # orientations (tangent space at the current estimate)
+        te = ti - tq
+        e = quat_to_rotvec(quat_mul(qi, quat_conj(qh)))
+        w = safe_div(e, te)
+        wh_new = wh + _alpha(te, d_cutoff) * (w - wh)
+        a = _alpha(te, min_cutoff + beta * safe_norm(wh_new))
+        qh_new = quat_normalize(quat_mul(quat_from_rotvec(a * e), qh))
+        qh_new = jnp.where(init_q, qh_new, qi)
+        wh_new = jnp.where(init_q, wh_new, 0)
+        rot_state = (
+            init_q | ok_q,
+            jnp.where(ok_q, ti, tq),
+            jnp.where(ok_q, qh_new, qh),
+            jnp.where(ok_q, wh_new, wh),
+        )
+        return (pos_state, rot_state), (pos_state[2], rot_state[2])
+
+    zero = jnp.zeros(3, dtype)
+    init = ((jnp.array(False), t[0], zero, zero), (jnp.array(False), t[0], ident, zero))
+    _, (xs, qs) = lax.scan(step, init, (t, p, vp, q, vq))
+    k = jnp.searchsorted(times, render_times, side="right") - 1
+    return _hold_channel(xs, vp, k), _hold_channel(qs, vq, k)
+
+
+def one_euro_numpy(
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    quaternions: Float[ArrayLike, "n 4"],
+    render_times: Float[ArrayLike, " m"],
+    *,
+    min_cutoff: float = 1.0,
+    beta: float = 0.0,
+    d_cutoff: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reference float64 NumPy loop implementation of :func:`one_euro` (same algorithm and
+    conventions; a plain per-measurement Python loop, as a typical baseline would be written)."""
+    t = np.asarray(times, dtype=np.float64)
+    p_in = np.asarray(positions, dtype=np.float64)
+    q_in = np.asarray(quaternions, dtype=np.float64)
+    r = np.asarray(render_times, dtype=np.float64)
+    _check_inputs(t, p_in, q_in, r)
+    n = t.shape[0]
+
+    def alpha(te, fc):
+        x = 2 * np.pi * fc * te
+        return x / (x + 1)
+
+    p_out = np.full((n, 3), np.nan)
+    q_out = np.full((n, 4), np.nan)
+    xh = dxh = tp = None
+    qh = wh = tq = None
+    for i in range(n):
+        x = p_in[i]
+        if np.all(np.isfinite(x)):
+            if xh is None:
+                xh, dxh = x.copy(), np.zeros(3)
+            else:
+                te = t[i] - tp
+                dx = (x - xh) / te if te > 0 else np.zeros(3)
+                dxh = dxh + alpha(te, d_cutoff) * (dx - dxh)
+                fc = min_cutoff + beta * np.linalg.norm(dxh)
+                xh = xh + alpha(te, fc) * (x - xh)
+            tp = t[i]
+            p_out[i] = xh
+        qm = q_in[i]
+        if np.all(np.isfinite(qm)):
+            qm = qm / np.linalg.norm(qm)
+            if qh is None:
+                qh, wh = qm.copy(), np.zeros(3)
+            else:
+                te = t[i] - tq
+                e = _np_rotvec(_np_qmul(qm, _np_qconj(qh)))
+                w = e / te if te > 0 else np.zeros(3)
+                wh = wh + alpha(te, d_cutoff) * (w - wh)
+                fc = min_cutoff + beta * np.linalg.norm(wh)
+                qh = _np_qnormalize(_np_qmul(_np_from_rotvec(alpha(te, fc) * e), qh))
+            tq = t[i]
+            q_out[i] = qh
+
+    k = np.searchsorted(t, r, side="right") - 1
+    return _np_hold(p_out, k), _np_hold(q_out, k)
+
+
+def _np_hold(x: np.ndarray, k: np.ndarray) -> np.ndarray:
+    n = x.shape[0]
+    valid = np.all(np.isfinite(x), axis=-1)
+    last = np.maximum.accumulate(np.where(valid, np.arange(n), -1))
+    i = np.where(k >= 0, last[np.clip(k, 0, n - 1)], -1)
+    return np.where((i >= 0)[:, None], x[np.clip(i, 0, n - 1)], np.nan)
+
+
+# ----------------------------------------------------------------------------------------------
+# offline interpolation
+# ----------------------------------------------------------------------------------------------
+
+
+def linear_slerp(
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    quaternions: Float[ArrayLike, "n 4"],
+    render_times: Float[ArrayLike, " m"],
+    *,
+    max_gap: float | None = None,
+) -> tuple[Float[Array, "m 3"], Float[Array, "m 4"]]:
+    """Offline (non-causal) linear / slerp interpolation of the valid measurements.
+
+    Thin wrapper of :func:`phjax.motion.resample.interpolate_poses` (clamped outside the valid range;
+    NaN inside gaps longer than ``max_gap`` when given).
+    """
+    return interpolate_poses(times, positions, quaternions, render_times, max_gap=max_gap)
+
+
+def cubic_spline(
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    quaternions: Float[ArrayLike, "n 4"],
+    render_times: Float[ArrayLike, " m"],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Offline (non-causal) C2 spline interpolation with SciPy (float64 NumPy, not ``jit``).
+
+    Positions: ``scipy.interpolate.CubicSpline`` (not-a-knot ends, so cubics are reproduced
+    exactly) through the valid positions. Orientations: ``scipy.spatial.transform.RotationSpline``
+    (C2 in angle) through the valid quaternions (converted ``wxyz -> xyzw``; sign flips are
+    irrelevant). Render times outside a channel's valid range are clamped to its end pose; with a
+    single valid sample the pose is constant; with none it is NaN. Repeated timestamps keep the
+    first sample. Output quaternions are ``wxyz``, made hemisphere-continuous.
+    """
+    from scipy.interpolate import CubicSpline
+    from scipy.spatial.transform import Rotation, RotationSpline
+
+    t = np.asarray(times, dtype=np.float64)
+    p_in = np.asarray(positions, dtype=np.float64)
+    q_in = np.asarray(quaternions, dtype=np.float64)
+    r = np.asarray(render_times, dtype=np.float64)
+    _check_inputs(t, p_in, q_in, r)
+
+    def knots(x):
+        idx = np.flatnonzero(np.all(np.isfinite(x), axis=-1))
+        _, first = np.unique(t[idx], return_index=True)
+        idx = idx[first]
+        return t[idx], x[idx]
+
+    tp, p = knots(p_in)
+    if tp.size == 0:
+        p_out = np.full((r.size, 3), np.nan)
+    elif tp.size == 1:
+        p_out = np.broadcast_to(p[0], (r.size, 3)).copy()
+    else:
+        p_out = CubicSpline(tp, p, axis=0)(np.clip(r, tp[0], tp[-1]))
+
+    tq, q = knots(q_in)
+    if tq.size == 0:
+        q_out = np.full((r.size, 4), np.nan)
+    elif tq.size == 1:
+        q_out = np.broadcast_to(q[0] / np.linalg.norm(q[0]), (r.size, 4)).copy()
+    else:
+        spline = RotationSpline(tq, Rotation.from_quat(wxyz_to_xyzw(q)))
+        q_out = xyzw_to_wxyz(spline(np.clip(r, tq[0], tq[-1])).as_quat())
+        q_out = _np_hemisphere(q_out)
+    return p_out, q_out
+
+
+def kalman_extrapolation(
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    quaternions: Float[ArrayLike, "n 4"],
+    render_times: Float[ArrayLike, " m"],
+    *,
+    config=None,
+) -> tuple[Float[Array, "m 3"], Float[Array, "m 4"]]:
+    """Causal Kalman constant-velocity extrapolation (the usual predictive baseline).
+
+    The filter of :mod:`phjax.tracking.kalman` runs over the measurements; each render time ``tau`` shows
+    the mean prediction of the latest filtered state (``t_k <= tau``) at ``tau``: linear in
+    position, constant angular velocity in orientation, with a jump at every camera frame.
+    Orientation-only input (all positions NaN) tracks orientation and returns NaN positions.
+
+    Arguments:
+        config: :class:`phjax.KalmanConfig` (default noise model).
+    """
+    from .kalman import KalmanConfig
+    from .tracker import _run_recording
+
+    config = KalmanConfig() if config is None else config
+    return _run_recording(_kalman_extrapolation_core, config, times, positions, quaternions,
+                          render_times, None)
+
+
+@jax.jit
+def _kalman_extrapolation_core(config, t, p, q, r):
+    from .kalman import kalman_filter, predict_pose
+    from .tracker import _latest_states
+
+    states, _ = kalman_filter(config, t, p, q)
+    sel, before = _latest_states(t, states, r)
+    pos, quat, _, _ = jax.vmap(lambda s, tau: predict_pose(config, s, tau))(sel, r)
+    bad = before | ~sel.initialized
+    nan = jnp.where(bad, jnp.nan, 0.0)[:, None]
+    return pos + nan, quat + nan

@@ -1,0 +1,689 @@
+"""Pose Kalman filter with variable time steps (position: linear KF, orientation: error-state KF).
+
+The state has two independent parts, filtered with separate covariances:
+
+* **Position** ``x``: a linear Kalman filter with a continuous white-noise model of the highest
+  derivative, per axis. ``model="cv"``: ``x = [p, v]`` (6,), white acceleration noise of spectral
+  density ``q`` [m^2/s^3]. ``model="ca"``: ``x = [p, v, a]`` (9,), white jerk noise [m^2/s^5].
+  The layout is by derivative (``[px, py, pz, vx, vy, vz, ...]``), so ``F = F1 (x) I3`` and
+  ``Q = q Q1 (x) I3`` with the 1-D matrices ``F1[i, j] = dt^(j-i) / (j-i)!`` and
+  ``Q1[i, j] = dt^(2n-1-i-j) / ((2n-1-i-j) (n-1-i)! (n-1-j)!)`` (``n`` = 2 or 3), i.e. the familiar
+  ``[[dt^3/3, dt^2/2], [dt^2/2, dt]]`` for CV and ``[[dt^5/20, dt^4/8, dt^3/6], ...]`` for CA.
+* **Orientation** ``(q, w)``: nominal unit quaternion ``q`` (wxyz) and angular velocity ``w``
+  (rad/s, **world frame**), propagated as ``q(t + dt) = exp(w dt) q(t)`` (``exp`` = rotation
+  vector to quaternion). The 6-D error state ``[dtheta, dw]`` is a world-frame (left)
+  perturbation ``q_true = exp(dtheta) q``, ``w_true = w + dw`` with covariance ``Pr``.
+
+Orientation error propagation (first order, exact for constant nominal ``w`` over the step).
+From ``exp(dtheta') = exp((w + dw) dt) exp(dtheta) exp(-w dt)``, with ``phi = w dt``,
+``exp(phi) exp(a) exp(-phi) = exp(R(phi) a)`` and ``exp(phi + b) ~ exp(J_l(phi) b) exp(phi)``::
+
+    dtheta' = R(phi) dtheta + J_l(phi) dt dw,        dw' = dw + noise
+    F = [[R(phi), J_l(phi) dt], [0, I]] = expm(A dt),  A = [[[w]x, I], [0, 0]]
+
+with ``R(phi) = I + sin(t)/t [phi]x + (1-cos t)/t^2 [phi]x^2`` and the left Jacobian
+``J_l(phi) = I + (1-cos t)/t^2 [phi]x + (t-sin t)/t^3 [phi]x^2`` (``t = |phi|``). The process
+noise is white angular acceleration of spectral density ``q_r`` [rad^2/s^3]; its discrete
+covariance ``Q_r = int_0^dt expm(A s) G q_r G^T expm(A s)^T ds`` (``G = [0; I]``) is evaluated in
+closed form for the same linearised model::
+
+    Q_tt = q_r (dt^3/3 I + d2 dt^3 [phi]x^2)
+    Q_tw = q_r (dt^2/2 I + d1 dt^2 [phi]x^2 + c2 dt^2 [phi]x),     Q_ww = q_r dt I
+
+with ``c2 = (t - sin t)/t^3``, ``d1 = (1/2 - (1-cos t)/t^2)/t^2``, ``d2 = (1/3 - 2 c2)/t^2``
+(Taylor series near ``t = 0``, where it reduces to the usual ``[[dt^3/3, dt^2/2], [dt^2/2, dt]]``).
+
+Orientation update: the measurement is ``q_meas = exp(n) q_true`` with world-frame noise
+``n ~ N(0, sigma^2 I)``; the innovation is the shortest-arc rotation vector of
+``q_meas q^-1`` (identical for ``q_meas`` and ``-q_meas``, with a deterministic tie-break at exactly
+180 degrees) and ``H = [I 0]``. After the update the error mean ``dtheta`` is injected
+(``q <- exp(dtheta) q``, renormalised; ``w <- w + dw``) and the covariance is reset with the
+Jacobian of ``dtheta_new = log(exp(dtheta + e) exp(-dtheta)) ~ J_l(dtheta) e``, i.e.
+``Pr <- G Pr G^T`` with ``G = diag(J_l(dtheta), I)``. Covariance updates use the Joseph form and
+are symmetrised.
+
+Conventions and behaviour:
+
+* ``dt = t - state.t`` is clamped at 0: predicting to an earlier (or NaN) time is a no-op and the
+  state time never decreases. A late measurement is therefore applied at ``state.t``.
+* Missing data: a position with any NaN (or inf) skips the position update; a quaternion with any
+  NaN/inf or zero norm skips the orientation update. Selection uses ``jnp.where`` only, so every
+  function is jittable, vmappable and has finite gradients (w.r.t. the noise parameters) with
+  missing data.
+* An uninitialised state (``initialized == False``) is only moved in time by
+  :func:`kalman_predict`; :func:`kalman_update` initialises it from the first measurement whose
+  position **and** quaternion are both valid.
+* Library code is dtype-generic: the pose dtype is that of the measurements passed to
+  :func:`kalman_init`; the time dtype is that of ``t`` (use relative times in float32).
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+import numpy as np
+from jax import lax
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from .._misc import dot_last
+from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
+
+__all__ = [
+    "KalmanConfig",
+    "KalmanState",
+    "KalmanInfo",
+    "kalman_init",
+    "kalman_uninitialized",
+    "kalman_predict",
+    "kalman_update",
+    "kalman_step",
+    "kalman_filter",
+    "rts_smooth",
+    "predict_pose",
+]
+
+_ORDER = {"cv": 2, "ca": 3}
+# Defaults for the highest-derivative spectral density, see the KalmanConfig docstring.
+_DEFAULT_POS_Q = {"cv": 0.03, "ca": 20.0}
+
+
+class KalmanConfig(eqx.Module):
+    """Noise model of the pose filter (float fields are differentiable PyTree leaves).
+
+    The spectral densities are heuristics for a seated/standing user's head, from
+    ``q ~ sigma^2 tau`` (RMS of the driving derivative ``sigma``, correlation time ``tau``);
+    tune them on recorded data.
+
+    Fields:
+        model: ``"cv"`` (constant velocity) or ``"ca"`` (constant acceleration) position model.
+            Static.
+        pos_process_noise: spectral density of the white highest derivative. CV: acceleration,
+            m^2/s^3, default 0.03 (lowest prediction RMSE on the development set with a 30 Hz,
+            5 mm sensor: ``experiments/tune_baselines.py``). CA: jerk, m^2/s^5, default 20.0
+            (RMS jerk ~9 m/s^3 over ~0.25 s). ``None`` picks the default of ``model``.
+        pos_meas_noise: position measurement std per axis, m (default 0.005).
+        rot_process_noise: angular-acceleration spectral density, rad^2/s^3 (default 0.3,
+            tuned like ``pos_process_noise`` with a 1 degree sensor).
+        rot_meas_noise: orientation measurement std per (world) axis, rad (default 1 degree).
+        init_pos_vel_std: initial velocity std, m/s (default 0.5).
+        init_pos_acc_std: initial acceleration std (CA only), m/s^2 (default 3.0).
+        init_rot_vel_std: initial angular-velocity std, rad/s (default 1.0).
+        gate_nis: if set, a position or orientation measurement whose normalised innovation
+            squared (chi-square with 3 dof under the model) exceeds it is rejected, e.g. 16.27
+            (p = 0.001). Static; default ``None`` (no gating). A filter that has diverged
+            rejects everything until its covariance has grown enough; use
+            ``KalmanState.last_update`` to detect long coasting and re-initialise.
+    """
+
+    model: str = eqx.field(static=True, default="cv")
+    pos_process_noise: float | None = None
+    pos_meas_noise: float = 0.005
+    rot_process_noise: float = 0.3
+    rot_meas_noise: float = math.radians(1.0)
+    init_pos_vel_std: float = 0.5
+    init_pos_acc_std: float = 3.0
+    init_rot_vel_std: float = 1.0
+    gate_nis: float | None = eqx.field(static=True, default=None)
+
+    def __post_init__(self):
+        if self.model not in _ORDER:
+            raise ValueError(f"KalmanConfig.model must be 'cv' or 'ca', got {self.model!r}")
+        if self.gate_nis is not None and not float(self.gate_nis) > 0:
+            raise ValueError(f"KalmanConfig.gate_nis must be positive or None, got {self.gate_nis}")
+        if self.pos_process_noise is None:
+            self.pos_process_noise = _DEFAULT_POS_Q[self.model]
+
+    @property
+    def order(self) -> int:
+        """Number of position derivatives in the state (2 for CV, 3 for CA)."""
+        return _ORDER[self.model]
+
+
+class KalmanState(eqx.Module):
+    """Filter state (a PyTree of arrays; stack/vmap freely).
+
+    Fields:
+        t: time of the estimate, s.
+        x: position state ``[p, v]`` (CV, (6,)) or ``[p, v, a]`` (CA, (9,)).
+        P: covariance of ``x``.
+        q: nominal orientation, unit quaternion wxyz.
+        w: angular velocity, rad/s, world frame (``q(t + dt) = exp(w dt) q(t)``).
+        Pr: (6, 6) covariance of the error state ``[dtheta, dw]``
+            (``q_true = exp(dtheta) q``, ``w_true = w + dw``).
+        initialized: whether the state holds an estimate.
+        last_update: time of the last accepted measurement (creation time while uninitialised).
+    """
+
+    t: Float[Array, ""]
+    x: Float[Array, " nx"]
+    P: Float[Array, "nx nx"]
+    q: Float[Array, "4"]
+    w: Float[Array, "3"]
+    Pr: Float[Array, "6 6"]
+    initialized: Bool[Array, ""]
+    last_update: Float[Array, ""]
+
+
+class KalmanInfo(eqx.Module):
+    """Diagnostics of one :func:`kalman_update`.
+
+    Innovations, their covariances and NIS are those of the prior state; they are zero when the
+    part is missing or when the call initialised the filter (``initialized_now``), and are
+    reported (not zero) for measurements rejected by the gate.
+
+    Fields:
+        pos_innovation, rot_innovation: (3,) innovations (m; rotation vector, rad).
+        pos_innovation_cov, rot_innovation_cov: (3, 3) innovation covariances ``S``.
+        pos_nis, rot_nis: ``y^T S^-1 y`` (chi-square, 3 dof, under the model).
+        pos_valid, rot_valid: the measurement part was present (finite).
+        pos_used, rot_used: the part was applied (valid and passed the gate, or initialised).
+        initialized_now: this call initialised the filter.
+    """
+
+    pos_innovation: Float[Array, "3"]
+    rot_innovation: Float[Array, "3"]
+    pos_innovation_cov: Float[Array, "3 3"]
+    rot_innovation_cov: Float[Array, "3 3"]
+    pos_nis: Float[Array, ""]
+    rot_nis: Float[Array, ""]
+    pos_valid: Bool[Array, ""]
+    rot_valid: Bool[Array, ""]
+    pos_used: Bool[Array, ""]
+    rot_used: Bool[Array, ""]
+    initialized_now: Bool[Array, ""]
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers
+
+
+def _float_dtype(*xs) -> jnp.dtype:
+    dt = jnp.result_type(*xs)
+    return dt if jnp.issubdtype(dt, jnp.inexact) else jnp.result_type(float)
+
+
+def _select(pred, a, b):
+    """``where(pred, a, b)`` leaf-wise over two PyTrees of the same structure."""
+    return jax.tree.map(lambda u, v: jnp.where(pred, u, v), a, b)
+
+
+def _sym(p):
+    return 0.5 * (p + jnp.swapaxes(p, -1, -2))
+
+
+def _hat(v):
+    z = jnp.zeros_like(v[..., 0])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    m = jnp.stack([z, -w, y, w, z, -x, -y, x, z], axis=-1)
+    return m.reshape(v.shape[:-1] + (3, 3))
+
+
+def _block(a, b, c, d):
+    return jnp.concatenate([jnp.concatenate([a, b], -1), jnp.concatenate([c, d], -1)], -2)
+
+
+def _series_coeffs(start: int, scale: float = 1.0, terms: int = 10) -> np.ndarray:
+    # scale * sum_k (-1)^k x^k / (2k + start)!  in x = theta^2, highest power first (polyval);
+    # 10 terms: truncation error < 1/21! for x < 1
+    return np.array([scale * (-1) ** k / math.factorial(2 * k + start) for k in range(terms)][::-1])
+
+
+_C0, _C1, _C2 = _series_coeffs(1), _series_coeffs(2), _series_coeffs(3)
+_D1, _D2 = _series_coeffs(4), _series_coeffs(5, scale=2.0)
+
+
+def _horner_const(coeffs, x):
+    """Polynomial with constant coefficients (highest power first) by Horner's rule, unrolled
+    (``jnp.polyval`` runs a loop: several kernels on XLA:CPU)."""
+    acc = float(coeffs[0])
+    for c in coeffs[1:]:
+        acc = acc * x + float(c)
+    return acc
+
+
+def _so3_coeffs(theta2):
+    """``(c0, c1, c2, d1, d2)`` of ``theta^2`` (Taylor series for ``theta < 1``), NaN-safe.
+
+    ``c0 = sin t / t``, ``c1 = (1 - cos t) / t^2``, ``c2 = (t - sin t) / t^3``,
+    ``d1 = (1/2 - c1) / t^2``, ``d2 = (1/3 - 2 c2) / t^2``.
+    """
+    small = theta2 < 1
+    x = jnp.where(small, theta2, 0)
+    series = [_horner_const(c, x) for c in (_C0, _C1, _C2, _D1, _D2)]
+    t2 = jnp.where(small, 1, theta2)
+    t = jnp.sqrt(t2)
+    s, c = jnp.sin(t), jnp.cos(t)
+    c0 = s / t
+    c1 = (1 - c) / t2
+    c2 = (t - s) / (t2 * t)
+    d1 = (0.5 - c1) / t2
+    d2 = (1 / 3 - 2 * c2) / t2
+    return tuple(jnp.where(small, a, b) for a, b in zip(series, (c0, c1, c2, d1, d2)))
+
+
+def _so3_left_jacobian(phi):
+    """Left Jacobian ``J_l(phi)`` of SO(3) (``exp(phi + b) ~ exp(J_l b) exp(phi)``)."""
+    k = _hat(phi)
+    _, c1, c2, _, _ = _so3_coeffs(jnp.sum(phi * phi, -1))
+    eye = jnp.eye(3, dtype=phi.dtype)
+    return eye + c1[..., None, None] * k + c2[..., None, None] * (k @ k)
+
+
+def _hemisphere_sign(q):
+    """``+-1`` mapping ``q`` to a canonical representative of ``{q, -q}``.
+
+    ``sign(w)``; at exactly 180 degrees (``w == 0``) the sign of the largest-magnitude vector
+    component, so the choice is sign-invariant there too.
+    """
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    ax, ay, az = jnp.abs(x), jnp.abs(y), jnp.abs(z)
+    # the first component of largest magnitude (argmax's tie rule), as selects (no reduction)
+    sv = jnp.sign(jnp.where((ax >= ay) & (ax >= az), x, jnp.where(ay >= az, y, z)))
+    return jnp.where(w != 0, jnp.sign(w), jnp.where(sv != 0, sv, 1)).astype(q.dtype)
+
+
+def _canonical_rotvec(dq):
+    """Shortest-arc rotation vector of ``dq``, identical for ``dq`` and ``-dq``."""
+    return quat_to_rotvec(dq * _hemisphere_sign(dq)[..., None])
+
+
+def _pos_matrices(order: int, dt):
+    """1-D transition ``F1`` and unit-density process noise ``Q1`` of the ``order``-state model."""
+    fact = np.vectorize(math.factorial)
+    i, j = np.meshgrid(np.arange(order), np.arange(order), indexing="ij")
+    ef = np.where(j >= i, j - i, 0)  # F1[i, j] = dt^(j-i) / (j-i)!  (upper triangle)
+    cf = np.where(j >= i, 1.0 / fact(ef), 0.0)
+    eq = 2 * order - 1 - i - j  # Q1[i, j] = dt^eq / (eq (n-1-i)! (n-1-j)!)
+    cq = 1.0 / (eq * fact(order - 1 - i) * fact(order - 1 - j))
+    pw = jnp.stack([dt**k for k in range(2 * order)])  # integer powers: grad-safe at dt = 0
+    return pw[ef] * jnp.asarray(cf, dt.dtype), pw[eq] * jnp.asarray(cq, dt.dtype)
+
+
+def _pos_model(config: KalmanConfig, dt):
+    f1, q1 = _pos_matrices(config.order, dt)
+    eye = jnp.eye(3, dtype=dt.dtype)
+    qd = jnp.asarray(config.pos_process_noise, dt.dtype)
+    return jnp.kron(f1, eye), qd * jnp.kron(q1, eye)
+
+
+def _rot_model(config: KalmanConfig, w, dt):
+    """Error-state transition ``F`` (6, 6) and process noise ``Q`` (6, 6) (see module docs)."""
+    phi = w * dt
+    k = _hat(phi)
+    k2 = k @ k
+    c0, c1, c2, d1, d2 = _so3_coeffs(jnp.sum(phi * phi))
+    eye = jnp.eye(3, dtype=w.dtype)
+    zero = jnp.zeros((3, 3), w.dtype)
+    rot = eye + c0 * k + c1 * k2
+    jl = eye + c1 * k + c2 * k2
+    f = _block(rot, jl * dt, zero, eye)
+    qr = jnp.asarray(config.rot_process_noise, w.dtype)
+    dt2, dt3 = dt * dt, dt * dt * dt
+    q_tt = dt3 / 3 * eye + d2 * dt3 * k2
+    q_tw = dt2 / 2 * eye + d1 * dt2 * k2 + c2 * dt2 * k
+    q = qr * _block(q_tt, q_tw, q_tw.T, dt * eye)
+    return f, _sym(q)
+
+
+def _clamped_time(state: KalmanState, t):
+    t = jnp.asarray(t, state.t.dtype)
+    t_new = jnp.where(t > state.t, t, state.t)  # NaN or earlier t -> no-op
+    return t_new, (t_new - state.t).astype(state.x.dtype)
+
+
+def _measurement_validity(position, quaternion, dtype):
+    p = jnp.asarray(position, dtype)
+    qm = jnp.asarray(quaternion, dtype)
+    if p.shape != (3,) or qm.shape != (4,):
+        raise ValueError(
+            f"expected position of shape (3,) and quaternion of shape (4,), got {p.shape} and "
+            f"{qm.shape} (use jax.vmap for batches)"
+        )
+    fin_p, fin_q = jnp.isfinite(p), jnp.isfinite(qm)  # written out: no reduction kernels
+    pos_valid = fin_p[0] & fin_p[1] & fin_p[2]
+    rot_valid = fin_q[0] & fin_q[1] & fin_q[2] & fin_q[3] & (dot_last(qm, qm) > 0)
+    return p, qm, pos_valid, rot_valid
+
+
+# ----------------------------------------------------------------------------------------------
+# public API
+
+
+def kalman_init(
+    config: KalmanConfig,
+    t: Float[ArrayLike, ""],
+    position: Float[ArrayLike, "3"],
+    quaternion: Float[ArrayLike, "4"],
+) -> KalmanState:
+    """Initialise the filter from one pose measurement.
+
+    Arguments:
+        config: noise model.
+        t: measurement time, s.
+        position: (3,) position, m.
+        quaternion: (4,) orientation, wxyz (normalised here; sign canonicalised to ``w >= 0``).
+
+    Returns:
+        A state at the measured pose with zero velocities, position covariance
+        ``pos_meas_noise^2``, velocity (and acceleration) covariance from the ``init_*_std``
+        fields and orientation covariance ``rot_meas_noise^2``. If either part of the measurement
+        is missing (NaN) the returned state has ``initialized == False`` (and the same
+        covariances, identity orientation and zero position).
+    """
+    position, quaternion, t = jnp.asarray(position), jnp.asarray(quaternion), jnp.asarray(t)
+    dtype = _float_dtype(position, quaternion)
+    t = jnp.asarray(t, _float_dtype(t))
+    p, qm, pos_valid, rot_valid = _measurement_validity(position, quaternion, dtype)
+    valid = pos_valid & rot_valid
+    ident = jnp.asarray([1, 0, 0, 0], dtype)
+    p = jnp.where(valid, p, 0)
+    qm = quat_normalize(jnp.where(valid, qm, ident))
+    qm = qm * _hemisphere_sign(qm)
+    n = config.order
+    x = jnp.concatenate([p, jnp.zeros(3 * (n - 1), dtype)])
+    stds = [config.pos_meas_noise, config.init_pos_vel_std, config.init_pos_acc_std][:n]
+    var = jnp.concatenate([jnp.full(3, jnp.asarray(s, dtype) ** 2, dtype) for s in stds])
+    var_r = jnp.concatenate(
+        [
+            jnp.full(3, jnp.asarray(config.rot_meas_noise, dtype) ** 2, dtype),
+            jnp.full(3, jnp.asarray(config.init_rot_vel_std, dtype) ** 2, dtype),
+        ]
+    )
+    return KalmanState(
+        t=t,
+        x=x,
+        P=jnp.diag(var),
+        q=qm,
+        w=jnp.zeros(3, dtype),
+        Pr=jnp.diag(var_r),
+        initialized=valid,
+        last_update=t,
+    )
+
+
+def kalman_uninitialized(
+    config: KalmanConfig, t: Float[ArrayLike, ""], dtype=None
+) -> KalmanState:
+    """An uninitialised state at time ``t`` (pose dtype ``dtype``, default: default float).
+
+    The first valid measurement passed to :func:`kalman_update` initialises it.
+    """
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    nan = jnp.asarray(jnp.nan, dtype)
+    return kalman_init(config, t, jnp.full(3, nan), jnp.full(4, nan))
+
+
+def kalman_predict(
+    config: KalmanConfig, state: KalmanState, t: Float[ArrayLike, ""]
+) -> KalmanState:
+    """Propagate the state to time ``t`` (``dt = max(t - state.t, 0)``; NaN ``t`` is a no-op).
+
+    Arguments:
+        config: noise model.
+        state: current state.
+        t: target time, s. Earlier than ``state.t``: the state is returned unchanged.
+
+    Returns:
+        The predicted state (uninitialised states only have their time advanced).
+    """
+    t_new, dt = _clamped_time(state, t)
+    f, qmat = _pos_model(config, dt)
+    x = f @ state.x
+    p = _sym(f @ state.P @ f.T + qmat)
+    fr, qr = _rot_model(config, state.w, dt)
+    q = quat_normalize(quat_mul(quat_from_rotvec(state.w * dt), state.q))
+    pr = _sym(fr @ state.Pr @ fr.T + qr)
+    pred = KalmanState(t_new, x, p, q, state.w, pr, state.initialized, state.last_update)
+    moved = eqx.tree_at(lambda s: s.t, state, t_new)
+    return _select(state.initialized, pred, moved)
+
+
+def _linear_update(x, p, y, r):
+    """Joseph-form update of ``(x, P)`` with ``H = [I3 0]``; returns ``(x, P, S, nis)``."""
+    nx = x.shape[0]
+    s = _sym(p[:3, :3] + r)
+    chol = jnp.linalg.cholesky(s)
+    gain = jsl.cho_solve((chol, True), p[:3, :]).T  # (nx, 3) = P H^T S^-1
+    x_new = x + gain @ y
+    ikh = jnp.eye(nx, dtype=x.dtype).at[:, :3].add(-gain)
+    p_new = _sym(ikh @ p @ ikh.T + gain @ r @ gain.T)
+    white = jsl.solve_triangular(chol, y, lower=True)
+    return x_new, p_new, s, jnp.sum(white * white)
+
+
+def kalman_update(
+    config: KalmanConfig,
+    state: KalmanState,
+    position: Float[ArrayLike, "3"],
+    quaternion: Float[ArrayLike, "4"],
+) -> tuple[KalmanState, KalmanInfo]:
+    """Measurement update with a pose measured at ``state.t``.
+
+    Arguments:
+        config: noise model.
+        state: predicted state (at the measurement time).
+        position: (3,) measured position, m; any NaN skips the position part.
+        quaternion: (4,) measured orientation (wxyz, any sign/norm); any NaN or a zero norm
+            skips the orientation part.
+
+    Returns:
+        ``(state, info)``. An uninitialised state is initialised from the measurement instead
+        (when both parts are valid). ``state.last_update`` is set to ``state.t`` when any part
+        was applied.
+    """
+    dtype = state.x.dtype
+    p_meas, q_meas, pos_valid, rot_valid = _measurement_validity(position, quaternion, dtype)
+    gate = config.gate_nis
+
+    # position part (safe substitute for missing data -> zero innovation, finite gradients)
+    r_pos = jnp.asarray(config.pos_meas_noise, dtype) ** 2 * jnp.eye(3, dtype=dtype)
+    y_pos = jnp.where(pos_valid, p_meas, state.x[:3]) - state.x[:3]
+    x_upd, p_upd, s_pos, nis_pos = _linear_update(state.x, state.P, y_pos, r_pos)
+    pos_ok = pos_valid if gate is None else pos_valid & (nis_pos <= gate)
+
+    # orientation part (error state, H = [I 0])
+    r_rot = jnp.asarray(config.rot_meas_noise, dtype) ** 2 * jnp.eye(3, dtype=dtype)
+    q_safe = quat_normalize(jnp.where(rot_valid, q_meas, state.q))
+    y_rot = jnp.where(rot_valid, _canonical_rotvec(quat_mul(q_safe, quat_conj(state.q))), 0)
+    err0 = jnp.zeros(6, dtype)
+    err, pr_upd, s_rot, nis_rot = _linear_update(err0, state.Pr, y_rot, r_rot)
+    dtheta, dw = err[:3], err[3:]
+    q_upd = quat_normalize(quat_mul(quat_from_rotvec(dtheta), state.q))
+    g = _block(
+        _so3_left_jacobian(dtheta),
+        jnp.zeros((3, 3), dtype),
+        jnp.zeros((3, 3), dtype),
+        jnp.eye(3, dtype=dtype),
+    )
+    pr_upd = _sym(g @ pr_upd @ g.T)
+    rot_ok = rot_valid if gate is None else rot_valid & (nis_rot <= gate)
+
+    updated = KalmanState(
+        t=state.t,
+        x=jnp.where(pos_ok, x_upd, state.x),
+        P=jnp.where(pos_ok, p_upd, state.P),
+        q=jnp.where(rot_ok, q_upd, state.q),
+        w=jnp.where(rot_ok, state.w + dw, state.w),
+        Pr=jnp.where(rot_ok, pr_upd, state.Pr),
+        initialized=state.initialized,
+        last_update=jnp.where(pos_ok | rot_ok, state.t, state.last_update),
+    )
+    return _finish(config, state, state.t, updated, p_meas, q_meas, (pos_valid, rot_valid),
+                   (pos_ok, rot_ok), (y_pos, y_rot), (s_pos, s_rot), (r_pos, r_rot), (nis_pos, nis_rot))
+
+
+def _finish(config, state, t, updated, p_meas, q_meas, valid, ok, innovation, cov, r, nis):
+    """The step's result: ``updated`` for an initialised ``state``, else a state initialised
+    from the measurement at ``t``; and the :class:`KalmanInfo` (pairs: position, orientation)."""
+    init = kalman_init(config, t, p_meas, q_meas)
+    init_time = jnp.where(init.initialized, t, state.last_update)
+    init = eqx.tree_at(lambda s: s.last_update, init, init_time)
+    was_init = state.initialized
+    new_state = _select(was_init, updated, init)
+    init_now = ~was_init & init.initialized
+    zero3 = jnp.zeros(3, updated.x.dtype)
+    zero = jnp.zeros((), updated.x.dtype)
+    info = KalmanInfo(
+        pos_innovation=jnp.where(was_init, innovation[0], zero3),
+        rot_innovation=jnp.where(was_init, innovation[1], zero3),
+        pos_innovation_cov=jnp.where(was_init, cov[0], r[0]),
+        rot_innovation_cov=jnp.where(was_init, cov[1], r[1]),
+        pos_nis=jnp.where(was_init & valid[0], nis[0], zero),
+        rot_nis=jnp.where(was_init & valid[1], nis[1], zero),
+        pos_valid=valid[0],
+        rot_valid=valid[1],
+        pos_used=jnp.where(was_init, ok[0], init_now),
+        rot_used=jnp.where(was_init, ok[1], init_now),
+        initialized_now=init_now,
+    )
+    return new_state, info
+
+
+@jax.jit
+def kalman_step(
+    config: KalmanConfig,
+    state: KalmanState,
+    t: Float[ArrayLike, ""],
+    position: Float[ArrayLike, "3"],
+    quaternion: Float[ArrayLike, "4"],
+) -> tuple[KalmanState, KalmanInfo]:
+    """:func:`kalman_predict` to ``t`` followed by :func:`kalman_update` (jitted; scan body)."""
+    return kalman_update(config, kalman_predict(config, state, t), position, quaternion)
+
+
+
+@jax.jit
+def kalman_filter(
+    config: KalmanConfig,
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    quaternions: Float[ArrayLike, "n 4"],
+    initial_state: KalmanState | None = None,
+) -> tuple[KalmanState, KalmanInfo]:
+    """Filter a measurement sequence with ``lax.scan`` over :func:`kalman_step`.
+
+    Arguments:
+        config: noise model.
+        times: (n,) measurement times, s (non-decreasing; earlier times are applied at the
+            current filter time, see :func:`kalman_predict`).
+        positions: (n, 3) positions, NaN rows/entries for missing data.
+        quaternions: (n, 4) orientations (wxyz, any sign), NaN for missing data.
+        initial_state: state to continue from; default: uninitialised at ``times[0]``, so the
+            first measurement with both parts valid initialises the filter.
+
+    Returns:
+        ``(states, infos)`` stacked over the ``n`` measurements (posterior after each one).
+    """
+    times = jnp.asarray(times)
+    dtype = _float_dtype(positions, quaternions)
+    positions = jnp.asarray(positions, dtype)
+    quaternions = jnp.asarray(quaternions, dtype)
+    n = times.shape[0] if times.ndim == 1 else -1
+    if times.ndim != 1 or positions.shape != (n, 3) or quaternions.shape != (n, 4) or n < 1:
+        raise ValueError(
+            "kalman_filter expects times (n,), positions (n, 3), quaternions (n, 4) with n >= 1; "
+            f"got {times.shape}, {positions.shape}, {quaternions.shape}"
+        )
+    if initial_state is None:
+        initial_state = kalman_uninitialized(config, times[0], dtype)
+
+    def body(state, inputs):
+        state, info = kalman_step(config, state, *inputs)
+        return state, (state, info)
+
+    _, (states, infos) = lax.scan(body, initial_state, (times, positions, quaternions))
+    return states, infos
+
+
+@jax.jit
+def rts_smooth(config: KalmanConfig, filtered_states: KalmanState) -> KalmanState:
+    """Rauch-Tung-Striebel smoother for the output of :func:`kalman_filter`.
+
+    The one-step predictions are recomputed from consecutive filtered states (so ``config``
+    must be the one used for filtering). Position: the exact linear RTS recursion.
+    Orientation: a multiplicative (error-state) RTS. For step ``k`` the error coordinates are
+    those of the filtered nominal ``(q_k, w_k)`` (mean zero, covariance ``Pr_k``); the prediction
+    ``q_k^- = exp(w_k dt) q_k`` with ``F_k, Q_k`` linearised at ``w_k``; the smoothed state at
+    ``k+1`` is expressed around the prediction as
+    ``e = [rotvec(q^s_{k+1} (q_{k+1}^-)^-1), w^s_{k+1} - w_k]`` with covariance transported by
+    ``diag(J_l(e_theta)^-1, I)``; then ``C = Pr_k F^T (Pr^-)^-1``, ``delta = C e``,
+    ``P = Pr_k + C (P^s - Pr^-) C^T``, and ``delta`` is injected into ``(q_k, w_k)`` with the
+    same reset Jacobian as the update. Approximations: first-order (linearisation about the
+    filtered, not the smoothed, trajectory; no iteration) and first-order covariance transport.
+    Uninitialised filtered states are passed through unchanged.
+
+    Arguments:
+        config: noise model used for filtering.
+        filtered_states: states stacked over time (leading axis), e.g. from
+            :func:`kalman_filter`.
+
+    Returns:
+        Smoothed states stacked over time (``t``, ``initialized``, ``last_update`` unchanged).
+    """
+    if filtered_states.x.ndim != 2:
+        raise ValueError("rts_smooth expects states stacked along a leading time axis")
+    last = jax.tree.map(lambda a: a[-1], filtered_states)
+    rest = jax.tree.map(lambda a: a[:-1], filtered_states)
+    dtype = filtered_states.x.dtype
+    eye3 = jnp.eye(3, dtype=dtype)
+    zero3 = jnp.zeros((3, 3), dtype)
+
+    def body(nxt: KalmanState, cur: KalmanState):
+        dt = jnp.maximum(nxt.t - cur.t, 0).astype(dtype)
+        # position: exact linear RTS
+        f, qmat = _pos_model(config, dt)
+        x_pred = f @ cur.x
+        p_pred = _sym(f @ cur.P @ f.T + qmat)
+        gain = jsl.cho_solve((jnp.linalg.cholesky(p_pred), True), f @ cur.P).T
+        x_s = cur.x + gain @ (nxt.x - x_pred)
+        p_s = _sym(cur.P + gain @ (nxt.P - p_pred) @ gain.T)
+        # orientation: multiplicative RTS in the error coordinates of the filtered state
+        fr, qr = _rot_model(config, cur.w, dt)
+        q_pred = quat_normalize(quat_mul(quat_from_rotvec(cur.w * dt), cur.q))
+        pr_pred = _sym(fr @ cur.Pr @ fr.T + qr)
+        e_theta = _canonical_rotvec(quat_mul(nxt.q, quat_conj(q_pred)))
+        e = jnp.concatenate([e_theta, nxt.w - cur.w])
+        jinv = jnp.linalg.inv(_so3_left_jacobian(e_theta))
+        tr = _block(jinv, zero3, zero3, eye3)
+        p_next = tr @ nxt.Pr @ tr.T
+        gain_r = jsl.cho_solve((jnp.linalg.cholesky(pr_pred), True), fr @ cur.Pr).T
+        delta = gain_r @ e
+        pr_s = cur.Pr + gain_r @ (p_next - pr_pred) @ gain_r.T
+        g = _block(_so3_left_jacobian(delta[:3]), zero3, zero3, eye3)
+        pr_s = _sym(g @ pr_s @ g.T)
+        q_s = quat_normalize(quat_mul(quat_from_rotvec(delta[:3]), cur.q))
+        smoothed = KalmanState(
+            cur.t, x_s, p_s, q_s, cur.w + delta[3:], pr_s, cur.initialized, cur.last_update
+        )
+        out = _select(cur.initialized & nxt.initialized, smoothed, cur)
+        return out, out
+
+    _, sm = lax.scan(body, last, rest, reverse=True)
+    return jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]], 0), sm, last)
+
+
+def predict_pose(
+    config: KalmanConfig, state: KalmanState, t: Float[ArrayLike, ""]
+) -> tuple[Float[Array, "3"], Float[Array, "4"], Float[Array, "3"], Float[Array, "3"]]:
+    """Predicted mean pose at time ``t`` (no covariance; ``dt`` clamped at 0 like predict).
+
+    Arguments:
+        config: noise model (only ``model`` is used).
+        state: current state (meaningless if ``state.initialized`` is False).
+        t: time, s (``jax.vmap`` over ``t`` for several render times).
+
+    Returns:
+        ``(position, quaternion, velocity, angular_velocity)`` at ``t``.
+    """
+    _, dt = _clamped_time(state, t)
+    n = config.order
+    xs = [state.x[3 * i : 3 * i + 3] for i in range(n)]
+    # x_i(t) = sum_k dt^(k-i) / (k-i)! x_k, written out (a dot is a kernel of its own on CPU)
+    x = [sum((dt ** (k - i) / math.factorial(k - i) * xs[k] for k in range(i + 1, n)), xs[i])
+         for i in range(2)]
+    q = quat_normalize(quat_mul(quat_from_rotvec(state.w * dt), state.q))
+    return x[0], q, x[1], state.w

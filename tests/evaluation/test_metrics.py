@@ -1,0 +1,276 @@
+"""Tests for phjax.evaluation.metrics against closed forms and independent references."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from phjax.evaluation import metrics
+from phjax.evaluation.metrics import (
+    evaluate,
+    latency,
+    max_angular_velocity_jump,
+    max_velocity_jump,
+    mean_abs_curvature,
+    mean_abs_torsion,
+    position_rmse,
+    rms_jerk_position,
+    rms_jerk_rotation,
+    rotation_rmse_deg,
+)
+
+
+def _wxyz(r: Rotation) -> np.ndarray:
+    return r.as_quat()[..., [3, 0, 1, 2]]
+
+
+def _helix(t, a=0.7, b=0.3):
+    return np.stack([a * np.cos(t), a * np.sin(t), b * t], -1)
+
+
+# ------------------------------------------------------------------------------------- accuracy
+
+
+@settings(max_examples=30)
+@given(st.integers(0, 10_000))
+def test_position_rmse_matches_direct_formula_and_ignores_nan_rows(seed):
+    rng = np.random.default_rng(seed)
+    est, gt = rng.normal(size=(2, 50, 3))
+    est[rng.random(50) < 0.2, 1] = np.nan
+    gt[rng.random(50) < 0.2] = np.nan
+    ok = ~np.isnan(est).any(1) & ~np.isnan(gt).any(1)
+    res = position_rmse(est, gt)
+    assert res.count == ok.sum()
+    ref = np.sqrt(np.mean(np.sum((est[ok] - gt[ok]) ** 2, 1)))
+    assert res.value == pytest.approx(ref, rel=1e-12)
+
+
+def test_rmse_matches_evo_ape():
+    pytest.importorskip("evo.core")
+    from evo.core import metrics as evo_metrics
+    from evo.core.trajectory import PoseTrajectory3D
+
+    rng = np.random.default_rng(0)
+    n = 40
+    t = np.arange(n) * 0.1
+    gt = rng.normal(size=(n, 3))
+    est = gt + 0.01 * rng.normal(size=(n, 3))
+    r = Rotation.random(n, random_state=1)
+    q_gt = _wxyz(r)
+    q_est = _wxyz(Rotation.from_rotvec(0.05 * rng.normal(size=(n, 3))) * r)
+    traj_ref = PoseTrajectory3D(positions_xyz=gt, orientations_quat_wxyz=q_gt, timestamps=t)
+    traj_est = PoseTrajectory3D(positions_xyz=est, orientations_quat_wxyz=q_est, timestamps=t)
+    rmse = evo_metrics.StatisticsType.rmse
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((traj_ref, traj_est))
+    assert position_rmse(est, gt).value == pytest.approx(ape.get_statistic(rmse), rel=1e-9)
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.rotation_angle_deg)
+    ape.process_data((traj_ref, traj_est))
+    assert rotation_rmse_deg(q_est, q_gt).value == pytest.approx(ape.get_statistic(rmse), rel=1e-6)
+
+
+@settings(max_examples=30)
+@given(st.integers(0, 10_000))
+def test_rotation_rmse_matches_scipy_and_is_sign_invariant(seed):
+    rng = np.random.default_rng(seed)
+    r_gt = Rotation.random(60, random_state=seed)
+    r_est = Rotation.from_rotvec(rng.normal(scale=0.5, size=(60, 3))) * r_gt
+    q_est, q_gt = _wxyz(r_est), _wxyz(r_gt)
+    q_est[rng.random(60) < 0.5] *= -1
+    q_est[3] = np.nan
+    ang = (r_est.inv() * r_gt).magnitude()
+    ref = np.degrees(np.sqrt(np.mean(np.delete(ang, 3) ** 2)))
+    res = rotation_rmse_deg(q_est, q_gt)
+    assert res.count == 59
+    assert res.value == pytest.approx(ref, rel=1e-9)
+
+
+def test_no_valid_rows_gives_nan_not_error():
+    nan = np.full((5, 3), np.nan)
+    res = position_rmse(nan, np.zeros((5, 3)))
+    assert math.isnan(res.value) and res.count == 0
+    with pytest.raises(ValueError):
+        position_rmse(np.zeros((4, 3)), np.zeros((5, 3)))
+
+
+# ------------------------------------------------------------------------------------- jerk
+
+
+@settings(max_examples=20)
+@given(st.integers(0, 10_000))
+def test_jerk_of_cubic_is_constant_on_any_grid(seed):
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(rng.uniform(0.005, 0.05, 40))
+    c = rng.normal(size=(4, 3))
+    x = c[0] + np.outer(t, c[1]) + np.outer(t**2, c[2]) + np.outer(t**3, c[3])
+    res = rms_jerk_position(t, x)
+    assert res.count == 37
+    assert res.value == pytest.approx(6 * np.linalg.norm(c[3]), rel=1e-6)
+    # t^3 along one axis: jerk 6
+    cube = np.stack([t**3, 0 * t, 0 * t], -1)
+    assert rms_jerk_position(t, cube).value == pytest.approx(6, rel=1e-6)
+
+
+def test_jerk_of_helix_and_nan_windows():
+    a, b = 0.7, 0.3
+    t = np.linspace(0, 10, 20001)
+    x = _helix(t, a, b)  # |r'''| = a
+    assert rms_jerk_position(t, x).value == pytest.approx(a, rel=1e-5)
+    x[100] = np.nan
+    res = rms_jerk_position(t, x)
+    assert res.count == len(t) - 3 - 4  # the four windows touching row 100 are skipped
+    assert res.value == pytest.approx(a, rel=1e-5)
+
+
+def test_rotation_jerk_of_cubic_angle_and_sign_flips():
+    t = np.linspace(0, 1, 501)
+    axis = np.array([2.0, -1.0, 2.0]) / 3
+    q = _wxyz(Rotation.from_rotvec(np.outer(t**3, axis)))  # |omega''| = 6
+    q[::7] *= -1
+    res = rms_jerk_rotation(t, q)
+    assert res.count == len(t) - 3
+    assert res.value == pytest.approx(6.0, rel=1e-6)
+    # constant angular velocity has no angular jerk
+    q = _wxyz(Rotation.from_rotvec(np.outer(2.0 * t, axis)))
+    assert rms_jerk_rotation(t, q).value < 1e-6
+
+
+def test_rotation_jerk_matches_analytic_for_composed_rotation():
+    """q = Rz(a t) Rx(b t): omega(t) = a e_z + b Rz(a t) e_x, so |omega''| = a^2 |b|."""
+    a, b = 1.5, 0.8
+    t = np.linspace(0, 3, 6001)
+    rz = Rotation.from_rotvec(np.outer(a * t, [0, 0, 1]))
+    rot = rz * Rotation.from_rotvec(np.outer(b * t, [1, 0, 0]))
+    assert rms_jerk_rotation(t, _wxyz(rot)).value == pytest.approx(a * a * b, rel=1e-4)
+
+
+# ------------------------------------------------------------------------------ curvature, torsion
+
+
+@pytest.mark.parametrize("a,b", [(0.7, 0.3), (0.2, 1.0)])
+def test_helix_curvature_and_torsion(a, b):
+    rng = np.random.default_rng(0)
+    t = np.linspace(0, 6, 6001)
+    t[1:-1] += rng.uniform(-0.2, 0.2, len(t) - 2) * 1e-3  # non-uniform samples
+    x = _helix(t, a, b)
+    k = mean_abs_curvature(t, x)
+    tau = mean_abs_torsion(t, x)
+    assert k.count == tau.count == len(t) - 4
+    assert k.value == pytest.approx(a / (a * a + b * b), rel=1e-4)
+    assert tau.value == pytest.approx(b / (a * a + b * b), rel=1e-4)
+
+
+def test_curvature_thresholds_skip_stationary_and_straight_samples():
+    t = np.linspace(0, 1, 101)
+    still = np.zeros((101, 3))
+    assert mean_abs_curvature(t, still).count == 0
+    line = np.stack([t, 2 * t, 0 * t], -1)
+    k = mean_abs_curvature(t, line)
+    assert k.count == 97 and k.value < 1e-9
+    assert mean_abs_torsion(t, line).count == 0  # torsion undefined on a straight line
+
+
+# ------------------------------------------------------------------------------- velocity jumps
+
+
+@pytest.mark.parametrize("kink", [0.5, 0.5037])  # on a sample / between samples
+def test_velocity_jump_of_known_kink(kink):
+    t = np.linspace(0, 1, 101)
+    v1, v2 = np.array([1.0, 0.0, 0.5]), np.array([-0.5, 2.0, 0.5])
+    x = np.where((t < kink)[:, None], np.outer(t, v1), kink * v1 + np.outer(t - kink, v2))
+    res = max_velocity_jump(t, x, [0.2, kink, 0.8])
+    assert res.count == 3
+    assert res.value == pytest.approx(np.linalg.norm(v2 - v1), rel=1e-9)
+    # a smooth path has a small jump (O(a dt) at most)
+    y = _helix(t)
+    assert max_velocity_jump(t, y, [0.2, 0.5037]).value < 0.7 * 2 * (t[1] - t[0])
+    # boundaries without three samples on a side are ignored
+    assert max_velocity_jump(t, x, [-1.0, 0.005, 2.0]).count == 0
+
+
+def test_angular_velocity_jump_of_known_kink():
+    t = np.linspace(0, 1, 101)
+    w1, w2 = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    r1 = Rotation.from_rotvec(np.outer(np.minimum(t, 0.5), w1))
+    r2 = Rotation.from_rotvec(np.outer(np.maximum(t - 0.5, 0), w2))
+    q = _wxyz(r2 * r1)  # world-frame omega switches from w1 to w2 at t = 0.5
+    res = max_angular_velocity_jump(t, q, [0.5])
+    assert res.count == 1
+    assert res.value == pytest.approx(np.linalg.norm(w2 - w1), rel=1e-6)
+
+
+# ------------------------------------------------------------------------------------- latency
+
+
+@pytest.mark.parametrize("delay", [0.0437, -0.021, 0.0])
+def test_latency_recovers_delay_of_a_copy(delay):
+    h = 1 / 500
+    t = np.arange(0, 20, h)
+    rng = np.random.default_rng(1)
+    f, ph = rng.uniform(0.1, 2, (2, 3, 4))
+
+    def sig(s):
+        arg = 2 * np.pi * f[None] * s[:, None, None] + ph[None]  # (n, 3, 4)
+        return np.sin(arg).sum(-1)
+
+    gt, est = sig(t), sig(t - delay)
+    est[500:520] = np.nan
+    res = latency(t, est, gt, max_lag=0.2)
+    assert abs(res.value - delay) < h
+    assert res.correlation > 0.99
+
+    # rotations: angular velocity of a delayed orientation signal
+    rq = _wxyz(Rotation.from_rotvec(0.5 * sig(t)))
+    rq_est = _wxyz(Rotation.from_rotvec(0.5 * sig(t - delay)))
+    res = latency(t, rq_est, rq, max_lag=0.2, window=0.02)
+    assert abs(res.value - delay) < h
+
+
+def test_latency_of_hold_staircase_is_about_half_a_period():
+    h = 1 / 1000
+    t = np.arange(0, 20, h)
+    period = 0.05
+    gt = np.stack([np.sin(2 * np.pi * 0.7 * t), np.cos(2 * np.pi * 0.3 * t), 0 * t], -1)
+    held = gt[(np.floor(t / period + 1e-9) * period / h).round().astype(int)]
+    res = latency(t, held, gt, max_lag=0.2, window=0.1)
+    assert abs(res.value - period / 2) < 2 * h
+
+
+# ------------------------------------------------------------------------------------- evaluate
+
+
+def test_evaluate_keys_values_and_orientation_only():
+    t = np.linspace(0, 2, 401)
+    gt_p = _helix(t)
+    gt_q = _wxyz(Rotation.from_rotvec(np.outer(np.sin(t), [0, 1.0, 0])))
+    est_p = gt_p + 0.001
+    out = evaluate(t, est_p, gt_q, gt_p, gt_q, boundary_times=t[::10] + 1e-4)
+    assert out["position_rmse"] == pytest.approx(0.001 * np.sqrt(3))
+    assert out["rotation_rmse_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert out["position_rmse_n"] == 401
+    assert out["curvature"] == pytest.approx(0.7 / (0.49 + 0.09), rel=1e-4)
+    assert abs(out["latency_position"]) < 1e-3
+    for k, v in out.items():
+        assert np.isfinite(v), k
+
+    nan_p = np.full_like(gt_p, np.nan)
+    out = evaluate(t, nan_p, gt_q, nan_p, gt_q)
+    pos_keys = ("position_rmse", "jerk_position", "curvature", "torsion", "velocity_jump")
+    for k in pos_keys + ("latency_position",):
+        assert math.isnan(out[k]) and out[k + "_n"] == 0
+    assert np.isfinite(out["rotation_rmse_deg"]) and np.isfinite(out["jerk_rotation"])
+
+
+def test_fd_weights_reproduce_polynomial_derivatives():
+    rng = np.random.default_rng(3)
+    d = np.sort(rng.uniform(-1, 1, (10, 5)), axis=1) * 0.1
+    c = rng.normal(size=5)
+    f = sum(c[k] * d**k for k in range(5))
+    for order in range(4):
+        w = metrics._fd_weights(d, order)
+        np.testing.assert_allclose(np.sum(w * f, 1), math.factorial(order) * c[order], rtol=1e-7)

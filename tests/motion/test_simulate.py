@@ -1,0 +1,172 @@
+"""Tests for phjax.motion.simulate: sensor model statistics and the synthetic head-motion generator."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.signal import find_peaks, welch
+from scipy.spatial.transform import Rotation
+
+from phjax.quaternion import quat_conj, quat_mul, quat_to_rotvec
+from phjax.motion.resample import finite_difference_velocities, interpolate_poses
+from phjax.motion.simulate import SensorModel, simulate_measurements, synthetic_head_motion
+
+NOISELESS = SensorModel(sigma_p=0.0, sigma_r=0.0, dropout=0.0)
+
+
+@pytest.fixture(scope="module")
+def head():
+    return synthetic_head_motion(duration=20.0, rate=240.0, seed=3)
+
+
+def _smooth_gt(duration=10.0, rate=200.0):
+    t = np.arange(int(duration * rate) + 1) / rate
+    p = np.stack([np.sin(t), np.cos(0.5 * t), 0.1 * t], -1)
+    rv = np.stack([0.3 * np.sin(t), 0.5 * t, 0 * t], -1)
+    q = Rotation.from_rotvec(rv).as_quat()[:, [3, 0, 1, 2]]
+    return t, p, q
+
+
+def test_sensor_model_defaults_and_module():
+    m = SensorModel()
+    assert isinstance(m, eqx.Module)
+    assert (m.rate, m.sigma_p, m.dropout, m.jitter, m.latency) == (30.0, 0.005, 0.05, 0.0, 0.0)
+    assert m.sigma_r == pytest.approx(np.pi / 180)
+
+
+def test_deterministic_grid_and_dropouts():
+    gt = _smooth_gt()
+    a = simulate_measurements(7, *gt)
+    b = simulate_measurements(jax.random.key(7), *gt)
+    c = simulate_measurements(8, *gt)
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)
+    assert not np.allclose(np.nan_to_num(a[1]), np.nan_to_num(c[1]))
+    t, p, q = map(np.asarray, a)
+    np.testing.assert_allclose(t, np.arange(301) / 30.0, atol=1e-12)  # 10 s at 30 Hz, ends included
+    lost_p, lost_q = np.isnan(p).any(1), np.isnan(q).any(1)
+    np.testing.assert_array_equal(lost_p, lost_q)
+    assert np.isnan(p[lost_p]).all() and np.isfinite(t).all()
+    # dropout count is Binomial(n, 0.05): within 5 standard deviations over 10 seeds
+    n_lost = sum(np.isnan(simulate_measurements(s, *gt)[1][:, 0]).sum() for s in range(10))
+    n = 10 * 301
+    assert abs(n_lost - 0.05 * n) < 5 * np.sqrt(n * 0.05 * 0.95)
+
+
+def test_noise_statistics_match_model():
+    gt = _smooth_gt(duration=60.0)
+    model = SensorModel(rate=100.0, sigma_p=0.01, sigma_r=0.02, dropout=0.0)
+    t, p, q = simulate_measurements(0, *gt, model=model)
+    p_true, q_true = interpolate_poses(*gt, t)
+    dp = np.asarray(p - p_true)
+    dr = np.asarray(quat_to_rotvec(quat_mul(q, quat_conj(q_true))))  # world-frame noise vector
+    n = dp.size  # 3 * 6001 samples; relative std error of a std estimate ~ 1 / sqrt(2 n)
+    for res, sigma in ((dp, 0.01), (dr, 0.02)):
+        assert abs(res.std() / sigma - 1) < 5 / np.sqrt(2 * n)
+        assert np.all(np.abs(res.mean(0)) < 5 * sigma / np.sqrt(res.shape[0]))
+        assert abs(np.corrcoef(res.T)[0, 1]) < 5 / np.sqrt(res.shape[0])  # independent axes
+
+
+def test_noiseless_samples_follow_ground_truth_with_latency_and_jitter():
+    gt = _smooth_gt()
+    model = SensorModel(rate=50.0, sigma_p=0.0, sigma_r=0.0, dropout=0.0, jitter=0.2, latency=0.035)
+    t, p, q = map(np.asarray, simulate_measurements(1, *gt, model=model))
+    sample_t = t - 0.035
+    assert np.all(np.diff(t) > 0)
+    assert sample_t[0] >= 0 and sample_t[-1] <= gt[0][-1] + 1e-12
+    dev = (sample_t - np.arange(len(t)) / 50.0) * 50.0  # in periods
+    assert np.abs(dev).max() <= 0.45 + 1e-9
+    assert 0.15 < dev[1:-1].std() < 0.25
+    p_true, q_true = map(np.asarray, interpolate_poses(*gt, sample_t))
+    np.testing.assert_allclose(p, p_true, atol=1e-12)
+    np.testing.assert_allclose(q, q_true, atol=1e-12)
+
+
+def test_orientation_only_ground_truth_and_float32():
+    t, p, q = _smooth_gt()
+    tm, pm, qm = simulate_measurements(2, t, np.full_like(p, np.nan), q)
+    lost = np.isnan(np.asarray(qm)).any(1)
+    assert np.isnan(np.asarray(pm)).all()
+    assert np.isfinite(np.asarray(qm)[~lost]).all() and (~lost).sum() > 250
+
+    out = simulate_measurements(2, t.astype(np.float32), p.astype(np.float32), q.astype(np.float32))
+    assert all(x.dtype == jnp.float32 for x in out)
+
+
+@pytest.mark.parametrize(
+    "bad", [dict(rate=0.0), dict(dropout=1.0), dict(sigma_p=-1.0), dict(jitter=-0.1)]
+)
+def test_invalid_model_raises(bad):
+    with pytest.raises(ValueError):
+        simulate_measurements(0, *_smooth_gt(), model=SensorModel(**bad))
+
+
+# --------------------------------------------------------------------------- synthetic head motion
+
+
+def test_head_motion_shapes_determinism_and_unit_quaternions(head):
+    t, p, q = head
+    assert t.shape == (4801,) and p.shape == (4801, 3) and q.shape == (4801, 4)
+    np.testing.assert_allclose(t[-1], 20.0)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1, atol=1e-12)
+    assert np.all(np.sum(q[1:] * q[:-1], 1) > 0)  # hemisphere-continuous
+    t2, p2, q2 = synthetic_head_motion(duration=20.0, rate=240.0, seed=3)
+    np.testing.assert_array_equal(p, p2)
+    assert not np.allclose(p, synthetic_head_motion(duration=20.0, seed=4)[1])
+
+
+def test_head_motion_speeds_and_ranges():
+    peaks = []
+    for seed in range(4):
+        t, p, q = synthetic_head_motion(duration=60.0, rate=240.0, seed=seed)
+        _, w = finite_difference_velocities(t, p, q)
+        speed = np.degrees(np.linalg.norm(np.asarray(w), axis=1))
+        idx, _ = find_peaks(speed, height=30.0, distance=int(0.3 * 240))
+        peaks.append(speed[idx])
+        fwd = Rotation.from_quat(q[:, [1, 2, 3, 0]]).apply([0, 0, -1.0])
+        elevation = np.degrees(np.arcsin(fwd[:, 1]))
+        assert np.all(np.abs(elevation) < 32)  # pitch within about +-30 deg
+        up = Rotation.from_quat(q[:, [1, 2, 3, 0]]).apply([0, 1.0, 0])
+        assert np.degrees(np.arccos(up[:, 1])).max() < 40  # no extreme head tilts
+        assert np.all(np.abs(p - p.mean(0)) < 0.25)  # seated: within +-25 cm
+    peaks = np.concatenate(peaks)
+    assert len(peaks) > 100  # roughly one gaze shift per 1.5 s
+    assert peaks.max() <= 320  # up to ~300 deg/s (+ sway and tremor)
+    assert 50 <= np.median(peaks) <= 150  # typical 50-150 deg/s
+    assert np.mean(peaks > 150) > 0.05  # but some fast turns
+
+
+def test_head_position_follows_neck_pivot_model(head):
+    t, p, q = head
+    offset = Rotation.from_quat(q[:, [1, 2, 3, 0]]).apply([0, 0.10, -0.08])
+    torso = p - offset  # pivot + slow torso sway
+    assert np.ptp(torso, axis=0).max() < 0.08  # a few cm of sway
+    assert np.ptp(torso[:, 1]) < np.ptp(torso[:, 0])  # less vertical sway
+    # torso sway is slow: its speed stays well below the head speed during turns
+    v_torso = np.linalg.norm(np.diff(torso, axis=0), axis=1) * 240
+    assert v_torso.max() < 0.1
+
+
+def test_head_motion_is_c2_and_contains_tremor():
+    # C2 with bounded jerk: the largest step in acceleration shrinks linearly with the step.
+    def max_accel_step(rate):
+        t, p, q = synthetic_head_motion(duration=20.0, rate=rate, seed=5)
+        h = 1 / rate
+        x = np.concatenate([p, q], 1)
+        acc = np.diff(x, 2, axis=0) / h**2
+        return np.abs(np.diff(acc, axis=0)).max()
+
+    assert max_accel_step(960.0) < 0.3 * max_accel_step(240.0)
+
+    t, p, q = synthetic_head_motion(duration=20.0, rate=240.0, seed=5)
+    _, w = finite_difference_velocities(t, p, q)
+    f, psd = welch(np.asarray(w), fs=240.0, nperseg=1024, axis=0)
+    psd = psd.sum(1)
+    tremor = psd[(f >= 8) & (f <= 12)].mean()
+    assert tremor > 10 * psd[(f >= 15) & (f <= 40)].mean()
+    # tremor amplitude: 8-12 Hz angular velocity RMS of 0.1-deg sinusoids ~ 2 pi f 0.1 deg / sqrt 2
+    band_rms = np.sqrt(psd[(f >= 7) & (f <= 13)].sum() * (f[1] - f[0]))
+    assert 3 < np.degrees(band_rms) < 20

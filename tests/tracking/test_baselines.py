@@ -1,0 +1,249 @@
+"""Tests for phjax.tracking.baselines: hold, One Euro (JAX and NumPy), linear/slerp and cubic splines."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.signal import lfilter
+from scipy.spatial.transform import Rotation
+
+from phjax.tracking.baselines import (
+    cubic_spline,
+    hold,
+    linear_slerp,
+    one_euro,
+    one_euro_numpy,
+    wxyz_to_xyzw,
+    xyzw_to_wxyz,
+)
+from phjax.quaternion import quat_geodesic_distance, quat_to_matrix
+from phjax.motion.resample import interpolate_poses
+
+N, M = 40, 97  # fixed shapes so that jit compiles once per function
+
+
+def _angle(a, b):
+    return np.asarray(quat_geodesic_distance(jnp.asarray(a), jnp.asarray(b)))
+
+
+def _stream(seed, n=N, drop=0.15):
+    """Irregular noisy measurements with NaN rows, sign flips and an orientation-only row."""
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(rng.uniform(0.01, 0.06, n))
+    p = np.cumsum(rng.normal(scale=0.02, size=(n, 3)), axis=0)
+    r = Rotation.from_rotvec(np.cumsum(rng.normal(scale=0.1, size=(n, 3)), axis=0))
+    q = r.as_quat()[:, [3, 0, 1, 2]]
+    q[rng.random(n) < 0.3] *= -1
+    lost = rng.random(n) < drop
+    lost[0] = True  # the stream starts with a dropped frame
+    p[lost] = np.nan
+    q[lost] = np.nan
+    p[n // 2] = np.nan  # orientation-only sample
+    render = np.sort(rng.uniform(t[0] - 0.05, t[-1] + 0.05, M))
+    return t, p, q, render
+
+
+def _compress(t, x):
+    ok = np.isfinite(x).all(1)
+    return t[ok], x[ok]
+
+
+# ------------------------------------------------------------------------------------------ hold
+
+
+@settings(max_examples=10)
+@given(st.integers(0, 10_000))
+def test_hold_matches_bruteforce_and_is_causal(seed):
+    t, p, q, r = _stream(seed)
+    hp, hq = map(np.asarray, hold(t, p, q, r))
+    for j, tau in enumerate(r):
+        for x, out in ((p, hp), (q, hq)):
+            ok = np.flatnonzero(np.isfinite(x).all(1) & (t <= tau))
+            if ok.size == 0:
+                assert np.isnan(out[j]).all()
+            else:
+                np.testing.assert_array_equal(out[j], x[ok[-1]])
+    # perturbing measurements after t_cut leaves outputs at render times before t_cut unchanged
+    cut = t[N // 3]
+    p2, q2 = p.copy(), q.copy()
+    p2[t > cut] += 1.0
+    q2[t > cut] = q2[t > cut][:, [1, 0, 3, 2]]
+    hp2, hq2 = map(np.asarray, hold(t, p2, q2, r))
+    early = r < t[N // 3 + 1]
+    np.testing.assert_array_equal(hp2[early], hp[early])
+    np.testing.assert_array_equal(hq2[early], hq[early])
+    assert not np.allclose(np.nan_to_num(hp2[~early]), np.nan_to_num(hp[~early]))
+
+
+# ------------------------------------------------------------------------------------- One Euro
+
+
+def test_one_euro_beta0_is_first_order_lowpass_on_a_step():
+    dt, fc = 0.01, 2.0
+    t = np.arange(N) * dt
+    x = np.where(t >= 0.1, 1.0, 0.0)
+    p = np.stack([x, -2 * x, 0 * x], -1)
+    angle = 0.8 * x
+    q = Rotation.from_rotvec(np.outer(angle, [0, 0, 1.0])).as_quat()[:, [3, 0, 1, 2]]
+    alpha = 1 / (1 + 1 / (2 * np.pi * fc) / dt)
+    ref = lfilter([alpha], [1, -(1 - alpha)], x, zi=[0.0])[0]  # y_k = a x_k + (1 - a) y_{k-1}
+    k = np.arange(N)
+    closed = np.where(t >= 0.1, 1 - (1 - alpha) ** (k - 9), 0.0)  # step at sample 10
+    np.testing.assert_allclose(ref, closed, atol=1e-12)
+    for fn in (one_euro, one_euro_numpy):
+        fp, fq = map(np.asarray, fn(t, p, q, t, min_cutoff=fc, beta=0.0, d_cutoff=3.0))
+        np.testing.assert_allclose(fp[:, 0], ref, atol=1e-12)
+        np.testing.assert_allclose(fp[:, 1], -2 * ref, atol=1e-12)
+        rv = Rotation.from_quat(fq[:, [1, 2, 3, 0]]).as_rotvec()
+        np.testing.assert_allclose(rv[:, 2], 0.8 * ref, atol=1e-12)
+        np.testing.assert_allclose(rv[:, :2], 0, atol=1e-12)
+
+
+@settings(max_examples=10)
+@given(st.integers(0, 10_000), st.floats(0.1, 5.0), st.floats(0.0, 2.0), st.floats(0.2, 5.0))
+def test_one_euro_jax_equals_numpy_reference(seed, min_cutoff, beta, d_cutoff):
+    t, p, q, r = _stream(seed)
+    kw = dict(min_cutoff=min_cutoff, beta=beta, d_cutoff=d_cutoff)
+    jp, jq = map(np.asarray, one_euro(t, p, q, r, **kw))
+    npp, npq = one_euro_numpy(t, p, q, r, **kw)
+    np.testing.assert_array_equal(np.isnan(jp), np.isnan(npp))
+    np.testing.assert_array_equal(np.isnan(jq), np.isnan(npq))
+    np.testing.assert_allclose(jp, npp, atol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(jq, npq, atol=1e-9, equal_nan=True)
+
+
+def test_one_euro_skips_nan_rows_and_is_sign_invariant():
+    t, p, q, r = _stream(11)
+    kw = dict(min_cutoff=1.5, beta=0.7)
+    fp, fq = map(np.asarray, one_euro(t, p, q, r, **kw))
+    # same as running on the valid rows only (each channel separately)
+    tp, pp = _compress(t, p)
+    tq, qq = _compress(t, q)
+    cp, _ = one_euro_numpy(tp, pp, np.tile([1.0, 0, 0, 0], (len(tp), 1)), r, **kw)
+    _, cq = one_euro_numpy(tq, np.zeros((len(tq), 3)), qq, r, **kw)
+    np.testing.assert_allclose(fp, cp, atol=1e-12, equal_nan=True)
+    np.testing.assert_allclose(fq, cq, atol=1e-12, equal_nan=True)
+    # q -> -q on any input row does not change the filtered rotation
+    flip = np.where(np.random.default_rng(0).random(N) < 0.5, -1.0, 1.0)[:, None]
+    _, fq2 = map(np.asarray, one_euro(t, p, q * flip, r, **kw))
+    ok = np.isfinite(fq).all(1)
+    np.testing.assert_array_equal(ok, np.isfinite(fq2).all(1))
+    np.testing.assert_array_less(_angle(fq[ok], fq2[ok]), 1e-9)
+    # causal: NaN before the first valid measurement
+    assert np.isnan(fp[r < tp[0]]).all() and np.isfinite(fp[r >= tp[0]]).all()
+
+
+def test_one_euro_is_differentiable_in_its_parameters_and_float32():
+    t, p, q, r = _stream(5)
+
+    def loss(params):
+        fp, fq = one_euro(t, p, q, r, min_cutoff=params[0], beta=params[1], d_cutoff=params[2])
+        return jnp.nansum(fp**2) + jnp.nansum(fq[:, 1:] ** 2)
+
+    params = jnp.array([1.0, 0.5, 1.0])
+    g = jax.grad(loss)(params)
+    assert np.all(np.isfinite(g)) and np.any(g != 0)
+    eps = 1e-6
+    fd = (loss(params.at[0].add(eps)) - loss(params.at[0].add(-eps))) / (2 * eps)
+    assert float(g[0]) == pytest.approx(float(fd), rel=1e-5)
+
+    f32 = [x.astype(np.float32) for x in (t, p, q, r)]
+    fp32, fq32 = one_euro(*f32, min_cutoff=1.0, beta=0.5)
+    assert fp32.dtype == jnp.float32 and fq32.dtype == jnp.float32
+    fp64, _ = one_euro_numpy(*f32, min_cutoff=1.0, beta=0.5)
+    np.testing.assert_allclose(fp32, fp64, atol=1e-4, equal_nan=True)
+
+
+# ----------------------------------------------------------------------------- offline methods
+
+
+def test_linear_slerp_is_interpolate_poses():
+    t, p, q, r = _stream(2)
+    a = linear_slerp(t, p, q, r, max_gap=0.1)
+    b = interpolate_poses(t, p, q, r, max_gap=0.1)
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_cubic_spline_reproduces_cubic_and_interpolates_rotations_smoothly():
+    rng = np.random.default_rng(4)
+    t = np.cumsum(rng.uniform(0.05, 0.2, 12))
+    c = rng.normal(size=(4, 3))
+
+    def cubic(s):
+        return c[0] + np.outer(s, c[1]) + np.outer(s**2, c[2]) + np.outer(s**3, c[3])
+
+    rv = np.cumsum(rng.normal(scale=0.3, size=(12, 3)), axis=0)
+    q = Rotation.from_rotvec(rv).as_quat()[:, [3, 0, 1, 2]]
+    q[::3] *= -1
+    p = cubic(t)
+    p[5] = np.nan  # skipped
+    q[7] = np.nan
+    r = np.linspace(t[0], t[-1], 2001)
+    sp, sq = cubic_spline(t, p, q, r)
+    np.testing.assert_allclose(sp, cubic(r), atol=1e-10)  # not-a-knot splines reproduce cubics
+    kp, kq = cubic_spline(t, p, q, t)
+    keep = np.isfinite(q).all(1)
+    np.testing.assert_array_less(_angle(kq[keep], q[keep]), 1e-9)  # interpolates the knots
+    # smooth: angular velocity has no jumps (C2 spline), consecutive steps change by O(h^2)
+    rel = Rotation.from_quat(sq[1:, [1, 2, 3, 0]]) * Rotation.from_quat(sq[:-1, [1, 2, 3, 0]]).inv()
+    w = rel.as_rotvec() / (r[1] - r[0])
+    assert np.abs(np.diff(w, axis=0)).max() < 0.05 * np.abs(w).max()
+    assert np.all(np.sum(sq[1:] * sq[:-1], 1) > 0)  # hemisphere-continuous output
+    # clamped outside the range, NaN without data, constant with a single sample
+    ep, eq = cubic_spline(t, p, q, [t[0] - 1, t[-1] + 1])
+    np.testing.assert_allclose(ep, p[[0, -1]], atol=1e-12)
+    op, oq = cubic_spline(t, np.full_like(p, np.nan), q, r[:5])
+    assert np.isnan(op).all() and np.isfinite(oq).all()
+    one = np.full_like(p, np.nan)
+    one[3] = p[3]
+    np.testing.assert_allclose(cubic_spline(t, one, q, r[:4])[0], np.tile(p[3], (4, 1)))
+
+
+def test_quaternion_order_conversions():
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(20, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    np.testing.assert_array_equal(xyzw_to_wxyz(wxyz_to_xyzw(q)), q)
+    np.testing.assert_array_equal(wxyz_to_xyzw(xyzw_to_wxyz(q)), q)
+    np.testing.assert_array_equal(wxyz_to_xyzw(jnp.asarray(q)), wxyz_to_xyzw(q))
+    m_scipy = Rotation.from_quat(wxyz_to_xyzw(q)).as_matrix()
+    np.testing.assert_allclose(np.asarray(quat_to_matrix(q)), m_scipy, atol=1e-12)
+    back = xyzw_to_wxyz(Rotation.from_matrix(m_scipy).as_quat())  # same rotation, sign may differ
+    back *= np.sign(np.sum(back * q, axis=1, keepdims=True))
+    np.testing.assert_allclose(back, q, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------- common interface
+
+
+def _all_methods():
+    return {
+        "hold": hold,
+        "one_euro": lambda *a: one_euro(*a, min_cutoff=1.0, beta=0.3),
+        "one_euro_numpy": lambda *a: one_euro_numpy(*a, min_cutoff=1.0, beta=0.3),
+        "linear_slerp": linear_slerp,
+        "cubic_spline": cubic_spline,
+    }
+
+
+@pytest.mark.parametrize("name", list(_all_methods()))
+def test_common_interface_and_sign_flips(name):
+    fn = _all_methods()[name]
+    t, p, q, r = _stream(21)
+    out_p, out_q = map(np.asarray, fn(t, p, q, r))
+    assert out_p.shape == (M, 3) and out_q.shape == (M, 4)
+    causal = name in ("hold", "one_euro", "one_euro_numpy")
+    tp0 = t[np.isfinite(p).all(1)][0]
+    assert np.isnan(out_p[r < tp0]).all() == causal or not np.any(r < tp0)
+    assert np.isfinite(out_p[r >= tp0]).all() and np.isfinite(out_q[r >= tp0]).all()
+    np.testing.assert_allclose(np.linalg.norm(out_q[r >= tp0], axis=1), 1, atol=1e-9)
+    # q -> -q input flips leave every output rotation unchanged
+    flip = np.where(np.random.default_rng(1).random(N) < 0.5, -1.0, 1.0)[:, None]
+    _, out_q2 = map(np.asarray, fn(t, p, q * flip, r))
+    ok = np.isfinite(out_q).all(1)
+    np.testing.assert_array_less(_angle(out_q[ok], out_q2[ok]), 1e-7)

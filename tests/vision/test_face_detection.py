@@ -1,0 +1,178 @@
+"""YuNet face detection: model cache (no network), both backends on the Biwi samples."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+from conftest import shared_path
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from phjax.vision import face_detection as F
+from phjax.vision import rgbd_io as R
+
+FRAMES = ("00054", "00427", "unknown")
+
+
+@pytest.fixture
+def model_cache(tmp_path, monkeypatch):
+    """A model cache in tmp_path seeded from the shared folder; torch hub also in tmp_path."""
+    src = shared_path("yunet_face_detection")
+    cache = tmp_path / "models"
+    monkeypatch.setenv("PHJAX_MODEL_DIR", str(cache))
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    F.seed_model_cache(src)
+    return cache
+
+
+@pytest.fixture(scope="module")
+def biwi_images():
+    root = shared_path("biwi_kinect_head_pose_samples")
+    return [R.read_image(root / f"frame_{f}_rgb.png") for f in FRAMES]
+
+
+@pytest.fixture(scope="module")
+def detectors(tmp_path_factory):
+    """Both backends, loaded once for the module from a seeded cache."""
+    src = shared_path("yunet_face_detection")
+    cache = tmp_path_factory.mktemp("models")
+    mp = pytest.MonkeyPatch()
+    mp.setenv("TORCH_HOME", str(tmp_path_factory.mktemp("torch")))
+    F.seed_model_cache(src, cache)
+    dets = {b: F.FaceDetector(b, model_dir=cache) for b in F.BACKENDS}
+    yield dets
+    mp.undo()
+
+
+# ------------------------------------------------------------------------------ model cache
+def test_seed_model_cache(model_cache):
+    names = sorted(p.name for p in model_cache.iterdir())
+    assert names == ["face_detection_yunet_2023mar.onnx", "yunet_final.pth"]
+    for m in F.MODELS.values():
+        p = F.model_path(m)  # verified against the recorded sha256
+        assert p.parent == model_cache
+        assert hashlib.sha256(p.read_bytes()).hexdigest() == m.sha256
+    # idempotent; unrelated files in the source folder are ignored
+    again = F.seed_model_cache(shared_path("yunet_face_detection"))
+    assert sorted(p.name for p in again) == names
+
+
+def test_model_dir_resolution(tmp_path, monkeypatch):
+    monkeypatch.delenv("PHJAX_MODEL_DIR", raising=False)
+    assert F.model_dir().parts[-3:] == (".cache", "phjax", "models")
+    monkeypatch.setenv("PHJAX_MODEL_DIR", str(tmp_path))
+    assert F.model_dir() == tmp_path
+    assert F.model_dir(tmp_path / "x") == tmp_path / "x"
+
+
+def test_missing_and_corrupt_models(tmp_path):
+    with pytest.raises(F.ModelNotFoundError) as e:
+        F.model_path("yunet-onnx", tmp_path)
+    msg = str(e.value)
+    assert "download_model" in msg and "PHJAX_MODEL_DIR" in msg and F.YUNET_ONNX.urls[0] in msg
+    (tmp_path / F.YUNET_ONNX.filename).write_bytes(b"corrupt")
+    with pytest.raises(ValueError, match="sha256"):
+        F.model_path(F.YUNET_ONNX, tmp_path)
+    with pytest.raises(ValueError, match="unknown model"):
+        F.model_path("nope", tmp_path)
+    with pytest.raises(F.ModelNotFoundError):
+        F.FaceDetector("opencv", model_dir=tmp_path / "empty")
+
+
+def test_download_model_from_file_url(tmp_path):
+    """The urllib download path (file:// URLs, so no network): verify, rename, clean up."""
+    payload = b"weights" * 100
+    src = tmp_path / "served.bin"
+    src.write_bytes(payload)
+    good = F.ModelFile("toy", "toy.bin", hashlib.sha256(payload).hexdigest(), len(payload),
+                       ("file:///nonexistent/toy.bin", src.as_uri()))
+    out = F.download_model(good, tmp_path / "cache")
+    assert out.read_bytes() == payload
+    bad = F.ModelFile("toy", "bad.bin", "0" * 64, len(payload), (src.as_uri(),))
+    with pytest.raises(OSError, match="could not download"):
+        F.download_model(bad, tmp_path / "cache")
+    assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == ["toy.bin"]
+
+
+# ------------------------------------------------------------------------------ result type
+@settings(max_examples=30)
+@given(st.lists(st.floats(-1e3, 1e3), min_size=14, max_size=14), st.floats(0, 1),
+       st.floats(0.1, 4), st.floats(0.1, 4))
+def test_face_detection_array_and_scaling(vals, score, sx, sy):
+    row = np.asarray(vals + [score], np.float32)
+    f = F.FaceDetection.from_array(row)
+    np.testing.assert_array_equal(f.to_array(), row)
+    g = f.scaled(sx, sy).scaled(1 / sx, 1 / sy)
+    np.testing.assert_allclose(g.landmarks, f.landmarks, atol=1e-2)
+    np.testing.assert_allclose(g.box, f.box, atol=1e-2)
+    # scaling maps pixel centres: the box centre moves like a landmark at the centre
+    c = f.scaled(sx, sy).center
+    np.testing.assert_allclose(c, (f.center + 0.5) * [sx, sy] - 0.5, rtol=1e-4, atol=1e-2)
+
+
+# ------------------------------------------------------------------------------- detection
+def _check_face(face, shape):
+    x, y, w, h = face.box
+    assert 0.6 <= face.score <= 1.0
+    assert 40 < w < 200 and 40 < h < 200 and 0 <= x and x + w <= shape[1]
+    lm = face.landmarks
+    assert lm.shape == (5, 2)
+    inside = (lm[:, 0] > x - 5) & (lm[:, 0] < x + w + 5) & (lm[:, 1] > y - 5) & (
+        lm[:, 1] < y + h + 5)
+    assert inside.all()
+    # order: subject's right eye on the image left, nose below the eyes, mouth below the nose
+    assert lm[0, 0] < lm[1, 0] and lm[3, 0] < lm[4, 0]
+    assert lm[2, 1] > max(lm[0, 1], lm[1, 1]) and min(lm[3, 1], lm[4, 1]) > lm[2, 1] - 5
+
+
+@pytest.mark.parametrize("backend", F.BACKENDS)
+def test_one_face_per_biwi_frame(detectors, biwi_images, backend):
+    for img in biwi_images:
+        faces = detectors[backend].detect(img)
+        assert len(faces) == 1, [f.score for f in faces]
+        _check_face(faces[0], img.shape)
+
+
+def test_backends_agree_within_8px(detectors, biwi_images):
+    cv = [detectors["opencv"].detect(img)[0] for img in biwi_images]
+    kn = detectors["kornia"].detect_batch(biwi_images)  # batched path
+    for a, b in zip(cv, kn):
+        d = np.linalg.norm(a.landmarks - b[0].landmarks, axis=1)
+        assert d.max() < 8.0, d
+        # boxes overlap strongly (IoU)
+        x0, y0 = np.maximum(a.box[:2], b[0].box[:2])
+        x1, y1 = np.minimum(a.box[:2] + a.box[2:], b[0].box[:2] + b[0].box[2:])
+        inter = max(x1 - x0, 0) * max(y1 - y0, 0)
+        union = np.prod(a.box[2:]) + np.prod(b[0].box[2:]) - inter
+        assert inter / union > 0.7
+
+
+def test_batch_equals_single_and_full_resolution(detectors, biwi_images, model_cache):
+    kn = detectors["kornia"]
+    batch = kn.detect_batch(biwi_images)
+    for img, faces in zip(biwi_images, batch):
+        single = kn.detect(img)
+        np.testing.assert_allclose(single[0].landmarks, faces[0].landmarks, atol=1e-3)
+    full = F.FaceDetector("opencv", detect_width=None)  # full 640x480 input
+    small = detectors["opencv"]
+    for img in biwi_images:
+        d = np.linalg.norm(full.detect(img)[0].landmarks - small.detect(img)[0].landmarks, axis=1)
+        assert d.max() < 10.0
+
+
+@pytest.mark.parametrize("backend", F.BACKENDS)
+def test_no_face(detectors, backend):
+    rng = np.random.default_rng(0)
+    blank = np.zeros((480, 640, 3), np.uint8)
+    noise = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)
+    out = detectors[backend].detect_batch([blank, noise])
+    assert out == [[], []]
+
+
+def test_bad_input(detectors):
+    with pytest.raises(ValueError, match="uint8"):
+        detectors["opencv"].detect(np.zeros((10, 10), np.float32))
+    with pytest.raises(ValueError, match="backend"):
+        F.FaceDetector("dlib")
