@@ -22,6 +22,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from ..quaternion import quat_conj, quat_exp, quat_log, quat_mul
+from .ph_quintic import _sample_axes
 
 __all__ = ["QuaternionHermite", "quaternion_hermite"]
 
@@ -52,20 +53,28 @@ class QuaternionHermite(eqx.Module):
         nb = x.ndim - 1
         return x.reshape(x.shape[:nb] + (1,) * k + x.shape[nb:])
 
-    def rotation(self, s: Float[ArrayLike, "*S"]) -> Float[Array, "*batch *S 4"]:
-        """Unit quaternion ``q(s)`` (every curve at every ``s``)."""
+    def _prep_s(self, s):
         s = jnp.asarray(s, self.q0.dtype)
-        k = s.ndim
+        return s, _sample_axes(self.duration.shape, s.shape, "s")
+
+    def rotation(self, s: Float[ArrayLike, "*#batch S"]) -> Float[Array, "*batch S 4"]:
+        """Unit quaternion ``q(s)``.
+
+        ``s`` follows the rule of :class:`PHQuintic`: its last axis is the sample axis and its
+        leading axes broadcast against the batch (``(S,)``: the same parameters on every curve;
+        ``batch + (S,)``: per-curve parameters; scalar: result ``batch + (4,)``).
+        """
+        s, k = self._prep_s(s)
         (b1, b2, b3), _ = self._basis(s)
         q = self._ex(self.q0, k)
         for b, w in ((b1, self.w1), (b2, self.w2), (b3, self.w3)):
             q = quat_mul(quat_exp(b[..., None] * self._ex(w, k)), q)
         return q
 
-    def angular_velocity(self, s: Float[ArrayLike, "*S"]) -> Float[Array, "*batch *S 3"]:
-        """World-frame angular velocity (rad/s, physical time) at ``s``."""
-        s = jnp.asarray(s, self.q0.dtype)
-        k = s.ndim
+    def angular_velocity(self, s: Float[ArrayLike, "*#batch S"]) -> Float[Array, "*batch S 3"]:
+        """World-frame angular velocity (rad/s, physical time) at ``s`` (shapes as
+        :meth:`rotation`)."""
+        s, k = self._prep_s(s)
         (b1, b2, b3), (d1, d2, d3) = self._basis(s)
         w1, w2, w3 = (self._ex(w, k) for w in (self.w1, self.w2, self.w3))
         e2 = quat_exp(b2[..., None] * w2)

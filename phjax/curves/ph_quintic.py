@@ -33,9 +33,21 @@ Conventions
   interpolant varies like ``sqrt|d|`` (not differentiable); the gradient returned there is the
   finite one obtained by treating ``sqrt|d|`` as having zero derivative at 0.
 
-Evaluation methods evaluate **every curve at every parameter**: for a curve batch of shape ``B``
-and parameters of shape ``T`` the result has shape ``B + T (+ (3,) or (3, 3))``. For different
-parameters per curve, ``jax.vmap`` over the curve (``PHQuintic`` is a PyTree).
+Evaluation semantics
+--------------------
+The evaluation methods take parameters ``t`` whose **last axis is the sample axis** and whose
+**leading axes broadcast against the curve batch** ``B`` (NumPy rules, like a generalised ufunc
+with signature ``(curve),(T)->(T)``):
+
+* ``t`` of shape ``(T,)``: every curve at the same ``T`` parameters, result ``B + (T,)``;
+* ``t`` of shape ``B + (T,)`` (e.g. the ``t`` returned by :func:`phjax.sample`): each curve at its
+  own ``T`` parameters, result ``B + (T,)`` -- no outer product;
+* in general ``t`` of shape ``S + (T,)``: result ``broadcast(B, S) + (T,)``;
+* scalar ``t``: every curve at that parameter, result ``B``.
+
+Vector- and matrix-valued methods append ``(3,)``, ``(4,)`` or ``(3, 3)``. Shapes whose leading
+axes do not broadcast against ``B`` raise ``ValueError`` (at trace time). One parameter per curve
+is ``t[..., None]`` (shape ``B + (1,)``).
 """
 
 from __future__ import annotations
@@ -216,6 +228,24 @@ def _make_frame(u, p0, p1, d0, d1) -> _Frame:
     return _Frame(u=u, r=_unit_fibre(u, ex), m=m)
 
 
+def _sample_axes(batch: tuple[int, ...], shape: tuple[int, ...], name: str = "t") -> int:
+    """Number of sample axes (0 for a scalar, else 1) of parameters of ``shape`` evaluated on a
+    curve batch ``batch``: the last axis of the parameters is the sample axis and the leading
+    ones must broadcast against ``batch`` (``ValueError`` otherwise)."""
+    if len(shape) == 0:
+        return 0
+    try:
+        np.broadcast_shapes(tuple(batch), tuple(shape[:-1]))
+    except ValueError:
+        raise ValueError(
+            f"{name} of shape {tuple(shape)} does not fit curves of batch shape {tuple(batch)}: the "
+            f"last axis of {name} is the sample axis and its leading axes {tuple(shape[:-1])} must "
+            f"broadcast against the batch shape; use shape (T,) for the same parameters on every "
+            f"curve or ({''.join(f'{n}, ' for n in batch)}T) for per-curve parameters"
+        ) from None
+    return 1
+
+
 def _is_tracer(x) -> bool:
     return isinstance(x, jax.core.Tracer)
 
@@ -223,6 +253,22 @@ def _is_tracer(x) -> bool:
 # ------------------------------------------------------------------------------ the curve
 class PHQuintic(eqx.Module):
     """A (batch of) spatial PH quintic(s) on ``t in [0, 1]`` in canonical form ``r' = A i A*``.
+
+    Evaluation (:meth:`position`, :meth:`hodograph`, :meth:`quaternion_polynomial`,
+    :meth:`speed`, :meth:`arc_length`, :meth:`parameter_at_length`, :meth:`curvature`,
+    :meth:`torsion`, :meth:`rmf_angle`, :meth:`frame`, :meth:`frame_quaternion`): the last axis
+    of ``t`` is the sample axis, its leading axes broadcast against the batch shape ``B``.
+    ``t`` of shape ``(T,)`` evaluates every curve at the same ``T`` parameters, ``t`` of shape
+    ``B + (T,)`` each curve at its own; both give ``B + (T,)`` (then ``(3,)``, ``(4,)`` or
+    ``(3, 3)`` for vector / quaternion / frame values). A scalar ``t`` gives ``B``. For
+    ``curves`` of batch ``(N,)``::
+
+        t, points = phjax.sample(curves, 100)   # t: (N, 100)
+        curves.curvature(t)                     # (N, 100)
+        curves.frame(t, "rmf")                  # (N, 100, 3, 3)
+        curves.position(jnp.linspace(0, 1, 5))  # (N, 5, 3)
+
+    Leading axes that do not broadcast against ``B`` raise ``ValueError``.
 
     Attributes:
         A0, A1, A2: Bernstein coefficients of the quaternion polynomial ``A(t)``, shape ``(*B, 4)``.
@@ -244,9 +290,11 @@ class PHQuintic(eqx.Module):
     def dtype(self):
         return self.control_points.dtype
 
-    def _prep_t(self, t):
+    def _prep_t(self, t, name: str = "t"):
+        """``(t, k)``: the parameters as an array and the number ``k`` (0 or 1) of sample axes
+        to insert between the coefficients' batch and core axes (see the class docs)."""
         t = jnp.asarray(t, dtype=self.dtype)
-        return t, t.ndim
+        return t, _sample_axes(self.batch_shape, t.shape, name)
 
     def _ex(self, x, k: int, core: int):
         """Insert ``k`` singleton axes between the batch axes and the ``core`` trailing axes."""
@@ -287,7 +335,7 @@ class PHQuintic(eqx.Module):
 
     # --------------------------------------------------------------------- evaluation
     @_jit_method
-    def position(self, t: Float[ArrayLike, "*T"]) -> Float[Array, "*batch *T 3"]:
+    def position(self, t: Float[ArrayLike, "*#batch T"]) -> Float[Array, "*batch T 3"]:
         """Curve points ``r(t)`` (Horner's rule on the power basis)."""
         t, k = self._prep_t(t)
         c = self._power(k)
@@ -298,19 +346,19 @@ class PHQuintic(eqx.Module):
         return acc
 
     @_jit_method
-    def hodograph(self, t: Float[ArrayLike, "*T"]) -> Float[Array, "*batch *T 3"]:
+    def hodograph(self, t: Float[ArrayLike, "*#batch T"]) -> Float[Array, "*batch T 3"]:
         """Derivative ``r'(t)`` with respect to the curve parameter."""
         t, k = self._prep_t(t)
         return self._derivs(t, k)[0]
 
     @_jit_method
-    def quaternion_polynomial(self, t: Float[ArrayLike, "*T"]) -> Float[Array, "*batch *T 4"]:
+    def quaternion_polynomial(self, t: Float[ArrayLike, "*#batch T"]) -> Float[Array, "*batch T 4"]:
         """The preimage ``A(t)`` (so that ``r'(t) = A(t) i A*(t)``)."""
         t, k = self._prep_t(t)
         return self._A(t, k)
 
     @_jit_method
-    def speed(self, t: Float[ArrayLike, "*T"]) -> Float[Array, "*batch *T"]:
+    def speed(self, t: Float[ArrayLike, "*#batch T"]) -> Float[Array, "*batch T"]:
         """Parametric speed ``sigma(t) = |r'(t)| = |A(t)|^2`` (a quartic polynomial)."""
         t, k = self._prep_t(t)
         a = self._A(t, k)
@@ -336,15 +384,15 @@ class PHQuintic(eqx.Module):
         return self._ex(c, k, 1)
 
     @_jit_method
-    def arc_length(self, t: Float[ArrayLike, "*T"]) -> Float[Array, "*batch *T"]:
+    def arc_length(self, t: Float[ArrayLike, "*#batch T"]) -> Float[Array, "*batch T"]:
         """Exact arc length ``s(t) = int_0^t sigma`` (a quintic polynomial)."""
         t, k = self._prep_t(t)
         return _horner_scalar(self._arc_power(k), t)
 
     @_jit_method
     def parameter_at_length(
-        self, s: Float[ArrayLike, "*S"], num_iterations: int = 12
-    ) -> Float[Array, "*batch *S"]:
+        self, s: Float[ArrayLike, "*#batch S"], num_iterations: int = 12
+    ) -> Float[Array, "*batch S"]:
         """Inverse of :meth:`arc_length`: the parameter ``t`` with ``s(t) = s`` (clipped to
         ``[0, L]``).
 
@@ -352,11 +400,11 @@ class PHQuintic(eqx.Module):
         bracketed Newton steps (bisection when Newton leaves the bracket) converge to machine
         precision (1e-12 relative in float64). Fixed iteration count: jit-friendly.
         """
-        s, k = self._prep_t(s)
+        s, k = self._prep_t(s, "s")
         c = self._arc_power(k)
         length = self.length.reshape(self.batch_shape + (1,) * k)
-        return _invert_arclength(self, c, length, jnp.broadcast_to(s, self.batch_shape + s.shape), k,
-                                 num_iterations)
+        shape = jnp.broadcast_shapes(self.batch_shape + (1,) * k, s.shape)
+        return _invert_arclength(self, c, length, jnp.broadcast_to(s, shape), k, num_iterations)
 
     def _curv_parts(self, t, k):
         a = self._A(t, k)
@@ -366,7 +414,7 @@ class PHQuintic(eqx.Module):
         return a, da, sigma, b
 
     @_jit_method
-    def curvature(self, t: Float[ArrayLike, "*T"]) -> Float[Array, "*batch *T"]:
+    def curvature(self, t: Float[ArrayLike, "*#batch T"]) -> Float[Array, "*batch T"]:
         """Curvature ``kappa = 2 sqrt(b_y^2 + b_z^2) / sigma^2`` with ``b = vect(A* A')``
         (0 where ``sigma = 0``)."""
         t, k = self._prep_t(t)
@@ -374,7 +422,7 @@ class PHQuintic(eqx.Module):
         return safe_div(2 * safe_sqrt(b[..., 1] ** 2 + b[..., 2] ** 2), sigma * sigma)
 
     @_jit_method
-    def torsion(self, t: Float[ArrayLike, "*T"]) -> Float[Array, "*batch *T"]:
+    def torsion(self, t: Float[ArrayLike, "*#batch T"]) -> Float[Array, "*batch T"]:
         """Torsion ``tau = (r' x r'') . r''' / |r' x r''|^2`` with ``|r' x r''|^2 = sigma^2 rho``,
         ``rho = 4 (b_y^2 + b_z^2)`` (0 where the curvature vanishes)."""
         t, k = self._prep_t(t)
@@ -393,7 +441,7 @@ class PHQuintic(eqx.Module):
         return jnp.sum(kap * kap * sig * w.astype(self.dtype), axis=-1)
 
     @_jit_method
-    def rmf_angle(self, t: Float[ArrayLike, "*T"], num_nodes: int = 24) -> Float[Array, "*batch *T"]:
+    def rmf_angle(self, t: Float[ArrayLike, "*#batch T"], num_nodes: int = 24) -> Float[Array, "*batch T"]:
         """Rotation of the RMF normal plane relative to the ERF: ``theta(t) = -2 int_0^t b_x/sigma``
         (Gauss-Legendre on ``[0, t]``; ``theta(0) = 0``)."""
         t, k = self._prep_t(t)
@@ -405,23 +453,23 @@ class PHQuintic(eqx.Module):
         return -2 * t * jnp.sum(integrand * w, axis=-1)
 
     @_jit_method
-    def frame(self, t: Float[ArrayLike, "*T"], kind: FrameKind = "rmf") -> Float[Array, "*batch *T 3 3"]:
+    def frame(self, t: Float[ArrayLike, "*#batch T"], kind: FrameKind = "rmf") -> Float[Array, "*batch T 3 3"]:
         """Adapted orthonormal frame with columns (tangent, normal, binormal).
 
         Arguments:
-            t: curve parameters.
+            t: curve parameters, shape ``(T,)``, ``batch + (T,)`` or scalar (see the class docs).
             kind: ``"euler_rodrigues"`` (ERF, rational, orientation ``A/|A|``), ``"rmf"``
                 (rotation-minimising: the ERF turned about the tangent by :meth:`rmf_angle`, equal
                 to the ERF at ``t = 0``) or ``"frenet"`` (undefined where ``kappa = 0``: there the
                 ERF normal is used; flips across inflections).
 
         Returns:
-            Rotation matrices of shape ``(*batch, *T, 3, 3)``.
+            Rotation matrices of shape ``(*batch, T, 3, 3)``.
         """
         return quat_to_matrix(self.frame_quaternion(t, kind)) if kind != "frenet" else self._frenet(t)
 
     @_jit_method
-    def frame_quaternion(self, t: Float[ArrayLike, "*T"], kind: FrameKind = "rmf") -> Float[Array, "*batch *T 4"]:
+    def frame_quaternion(self, t: Float[ArrayLike, "*#batch T"], kind: FrameKind = "rmf") -> Float[Array, "*batch T 4"]:
         """The frame of :meth:`frame` as a unit quaternion ``wxyz``."""
         if kind not in ("frenet", "euler_rodrigues", "rmf"):
             raise ValueError(f"unknown frame kind {kind!r}; use 'frenet', 'euler_rodrigues' or 'rmf'")

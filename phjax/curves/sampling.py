@@ -27,7 +27,10 @@ def sample(
             in arc length (parameters from :meth:`PHQuintic.parameter_at_length`).
 
     Returns:
-        ``(t, points)`` with shapes ``(*batch, n)`` and ``(*batch, n, 3)``.
+        ``(t, points)`` with shapes ``(*batch, n)`` and ``(*batch, n, 3)``. ``t`` can be passed
+        to the evaluation methods as is (each curve at its own parameters):
+        ``curves.curvature(t)`` has shape ``(*batch, n)``, ``curves.frame(t)``
+        ``(*batch, n, 3, 3)``.
     """
     if by not in ("time", "arclength"):
         raise ValueError(f"by must be 'time' or 'arclength', got {by!r}")
@@ -35,11 +38,5 @@ def sample(
     if by == "time":
         t = jnp.broadcast_to(u, curves.batch_shape + (n,))
         return t, curves.position(u)
-    flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(curves.batch_shape):]), curves)
-
-    def one(c):
-        tc = c.parameter_at_length(c.length * u)
-        return tc, c.position(tc)
-
-    t, pts = jax.vmap(one)(flat)
-    return t.reshape(curves.batch_shape + (n,)), pts.reshape(curves.batch_shape + (n, 3))
+    t = curves.parameter_at_length(curves.length[..., None] * u)  # (*batch, n): per curve
+    return t, curves.position(t)

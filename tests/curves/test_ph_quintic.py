@@ -616,10 +616,13 @@ def test_batch_broadcasting_jit_vmap_equal_loop():
         np.testing.assert_allclose(batched.frame(t)[k], single.frame(t), atol=1e-12)
         sf = pj.hermite_quintic(p0[k], p1[k], d0[k], d1[k], phi[0, k], phi[1, k])
         np.testing.assert_allclose(fixed.control_points[k], sf.control_points, atol=1e-13)
-    # broadcasting: one start point for all segments, (2, 6) batch of parameters
+    # broadcasting: one start point for all segments; parameters (2, 6, 4): leading axes (2, 6)
+    # broadcast against the batch (6,), the last is the sample axis (tests/curves/
+    # test_evaluation_semantics.py has the rule in full)
     c = pj.hermite_quintic(p0[0], p1, d0, d1)
     assert c.batch_shape == (6,)
-    assert c.position(np.zeros((2, 4))).shape == (6, 2, 4, 3)
+    assert c.position(np.zeros((2, 6, 4))).shape == (2, 6, 4, 3)
+    assert c.position(np.zeros(4)).shape == (6, 4, 3)
     assert c.curvature(0.5).shape == (6,)
 
 
