@@ -10,11 +10,17 @@ readers
 - normalise the quaternions and flip signs so that consecutive quaternions have non-negative dot
   products (``q`` and ``-q`` are the same rotation; interpolators need the continuous choice),
 - raise :class:`TrajectoryFormatError` (a ``ValueError``) for malformed input, naming the file,
-  the 1-based line number and what was wrong (column count, non-numeric token, non-finite value
-  where none is allowed, zero-norm quaternion).
+  the 1-based line number and what was wrong (column count, non-numeric token, non-finite time,
+  infinite value, zero-norm quaternion), and for empty, undetectable or non-text files.
+  A missing file or a directory raises the usual ``OSError`` (``FileNotFoundError``,
+  ``IsADirectoryError``).
 
-Positions may be NaN (missing; orientation-only formats give all-NaN positions) but not infinite;
-times and quaternions must be finite.
+**Lost frames.** A NaN in a row's position or quaternion (or both) marks that part of the sample
+as missing -- a lost frame, as the tracker (:func:`phjax.track`), the resampler and the metrics
+treat it. Every reader keeps such a row with its timestamp and makes the whole part NaN (a
+partial NaN quaternion becomes ``(nan, nan, nan, nan)``); every writer writes ``nan``, so a lost
+frame survives a round trip. Orientation-only formats give all-NaN positions. Times must be
+finite, and infinite values and zero quaternions are errors (use ``nan`` for missing data).
 
 Formats
 -------
@@ -113,10 +119,10 @@ class Trajectory(NamedTuple):
 
     Attributes:
         times: ``(n,)`` sample times in seconds (float64, strictly increasing from the readers).
-        positions: ``(n, 3)`` positions in metres; NaN where unknown (all NaN for
-            orientation-only sources).
+        positions: ``(n, 3)`` positions in metres; NaN rows where unknown (lost frames; all
+            NaN for orientation-only sources).
         quaternions: ``(n, 4)`` unit quaternions, ``wxyz``, hemisphere-continuous (consecutive
-            dot products ``>= 0``) from the readers.
+            valid rows have dot products ``>= 0``) from the readers; NaN rows are lost frames.
 
     ``len(traj)`` is 3 (the tuple's fields, as for any NamedTuple, which keeps pytree and
     unpacking semantics intact); the number of samples is :attr:`num_samples`.
@@ -149,8 +155,10 @@ class Trajectory(NamedTuple):
 
         Arguments:
             times: ``(n,)`` seconds, finite.
-            quaternions: ``(n, 4)`` ``wxyz``, finite and non-zero (normalised here).
-            positions: ``(n, 3)`` metres, NaN allowed; ``None`` for orientation only.
+            quaternions: ``(n, 4)`` ``wxyz``, non-zero (normalised here); NaN rows are lost
+                frames.
+            positions: ``(n, 3)`` metres, NaN rows are lost frames; ``None`` for orientation
+                only.
 
         Returns:
             A :class:`Trajectory` sorted by time, duplicates dropped (with a warning),
@@ -194,8 +202,11 @@ def _err(path: PathLike, line: int | None, what: str) -> TrajectoryFormatError:
 
 
 def _read_lines(path: PathLike) -> list[str]:
-    with open(path, encoding="utf-8-sig") as f:
-        return f.read().splitlines()
+    try:
+        with open(path, encoding="utf-8-sig") as f:
+            return f.read().splitlines()
+    except UnicodeDecodeError as e:
+        raise _err(path, None, f"not a UTF-8 text file ({e.reason} at byte {e.start})") from None
 
 
 def _data_lines(lines: list[str], comment: str | None = "#") -> list[tuple[int, str]]:
@@ -252,7 +263,8 @@ def _check_values(
     q: np.ndarray,
     labels: tuple[str, str, str] = ("timestamp", "position", "quaternion"),
 ) -> None:
-    """Reject non-finite times/quaternions, infinite positions and zero quaternions."""
+    """Reject non-finite times, infinite positions / quaternions and zero quaternions (NaN
+    positions and quaternions are lost frames)."""
 
     def first(mask: np.ndarray) -> int | None:
         idx = np.flatnonzero(mask)
@@ -262,9 +274,10 @@ def _check_values(
         raise _err(path, ln, f"non-finite {labels[0]}")
     if p is not None and (ln := first(np.any(np.isinf(p), axis=-1))) is not None:
         raise _err(path, ln, f"infinite {labels[1]} (use nan for a missing position)")
-    if (ln := first(~np.all(np.isfinite(q), axis=-1))) is not None:
-        raise _err(path, ln, f"non-finite {labels[2]}")
-    if (ln := first(np.linalg.norm(q, axis=-1) < _ZERO_NORM)) is not None:
+    if (ln := first(np.any(np.isinf(q), axis=-1))) is not None:
+        raise _err(path, ln, f"infinite {labels[2]} (use nan for a lost frame)")
+    zero = ~np.any(np.isnan(q), axis=-1) & (np.linalg.norm(q, axis=-1) < _ZERO_NORM)
+    if (ln := first(zero)) is not None:
         raise _err(path, ln, f"zero-norm {labels[2]}")
 
 
@@ -289,8 +302,12 @@ def _canonicalise(t: np.ndarray, p: np.ndarray, q: np.ndarray, source: str) -> T
             stacklevel=3,
         )
         t, p, q = t[keep], p[keep], q[keep]
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    q = _np_hemisphere(q)
+    p = np.where(np.any(np.isnan(p), axis=-1, keepdims=True), np.nan, p)
+    lost = np.any(np.isnan(q), axis=-1)
+    q = np.where(lost[:, None], np.nan, q)
+    if not np.all(lost):  # continuity across lost frames: between consecutive valid rows
+        qv = q[~lost]
+        q[~lost] = _np_hemisphere(qv / np.linalg.norm(qv, axis=-1, keepdims=True))
     return Trajectory(
         np.ascontiguousarray(t, dtype=np.float64),
         np.ascontiguousarray(p, dtype=np.float64),
@@ -311,12 +328,12 @@ def _validate_arrays(times, positions, quaternions) -> tuple[np.ndarray, np.ndar
         raise ValueError(f"positions must have shape ({n}, 3), got {p.shape}")
     if not np.all(np.isfinite(t)):
         raise ValueError("times must be finite")
-    if not np.all(np.isfinite(q)):
-        raise ValueError("quaternions must be finite")
+    if np.any(np.isinf(q)):
+        raise ValueError("quaternions must not be infinite (use nan for a lost frame)")
     if np.any(np.isinf(p)):
         raise ValueError("positions must not be infinite (use nan for missing)")
-    if np.any(np.linalg.norm(q, axis=-1) < _ZERO_NORM):
-        raise ValueError("quaternions must be non-zero")
+    if np.any(~np.any(np.isnan(q), axis=-1) & (np.linalg.norm(q, axis=-1) < _ZERO_NORM)):
+        raise ValueError("quaternions must be non-zero (use nan for a lost frame)")
     return t, p, q
 
 
@@ -548,10 +565,10 @@ def read_cwi(
         rows.append([r[i] for i in idx])
         who.append(r[ip])
     a = _float_table(path, linenos, rows, need, [i + 1 for i in idx])
-    bad = ~np.all(np.isfinite(a[:, 3:7]), axis=-1) | np.any(np.isinf(a[:, :3]), axis=-1)
+    bad = ~np.isfinite(a[:, 6]) | np.any(np.isinf(a[:, :6]), axis=-1)  # NaN: a lost frame
     if np.any(bad):
         ln = linenos[int(np.flatnonzero(bad)[0])]
-        raise _err(path, ln, "non-finite angle/ViewFrame or infinite position")
+        raise _err(path, ln, "non-finite ViewFrame or infinite position/angle")
     q = unity_euler_to_quaternion(a[:, 3], a[:, 4], a[:, 5])
     t = a[:, 6] / rate
     p = a[:, :3] * np.array([1.0, 1.0, -1.0])
@@ -601,8 +618,8 @@ def read_avtrack360(path: PathLike) -> dict[str, Trajectory]:
 
     Returns:
         ``{video filename: Trajectory}`` (orientation only, NaN positions), angles converted with
-        :func:`avtrack360_euler_to_quaternion`. Structural errors are located by JSON path
-        (syntax errors by line number).
+        :func:`avtrack360_euler_to_quaternion`; a ``NaN`` angle is a lost frame. Structural
+        errors are located by JSON path (syntax errors by line number).
     """
     try:
         with open(path, encoding="utf-8-sig") as f:
@@ -626,7 +643,9 @@ def read_avtrack360(path: PathLike) -> dict[str, Trajectory]:
         for j, s in enumerate(samples):
             for k, key in enumerate(("sec", "pitch", "yaw", "roll")):
                 v = s.get(key) if isinstance(s, dict) else None
-                if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                lost = key != "sec" and isinstance(v, float) and math.isnan(v)
+                if (isinstance(v, bool) or not isinstance(v, (int, float))
+                        or not (math.isfinite(v) or lost)):
                     raise _err(
                         path, None,
                         f"{where}.pitch_yaw_roll_data_hmd[{j}]: missing or non-finite {key!r}",
@@ -740,17 +759,21 @@ def detect_format(path: PathLike) -> str:
     """Guess a file's format from its first lines (and ``.json`` extension).
 
     Returns one of ``"tum"``, ``"euroc"``, ``"csv"``, ``"corbillon"``, ``"hachaj"``, ``"cwi"``,
-    ``"avtrack360"``; raises ``ValueError`` when nothing matches.
+    ``"avtrack360"``; raises :class:`TrajectoryFormatError` for an empty or non-text file or
+    when nothing matches.
     """
     head: list[str] = []
-    with open(path, encoding="utf-8-sig") as f:
-        for line in f:
-            if line.strip():
-                head.append(line.strip())
-            if len(head) >= 20:
-                break
+    try:
+        with open(path, encoding="utf-8-sig") as f:
+            for line in f:
+                if line.strip():
+                    head.append(line.strip())
+                if len(head) >= 20:
+                    break
+    except UnicodeDecodeError as e:
+        raise _err(path, None, f"not a UTF-8 text file ({e.reason} at byte {e.start})") from None
     if not head:
-        raise ValueError(f"{os.fspath(path)}: empty file, cannot detect its format")
+        raise _err(path, None, "empty file, cannot detect its format")
     first = head[0]
     if Path(path).suffix.lower() == ".json" or first.startswith(("{", "[")):
         return "avtrack360"
@@ -775,9 +798,10 @@ def detect_format(path: PathLike) -> str:
             toks = s.split()
             if len(toks) == 8 and all(map(_is_number, toks)):
                 return "tum"
-    raise ValueError(
-        f"{os.fspath(path)}: cannot detect the trajectory format from its first lines; "
-        f"pass format= one of {sorted(_READERS)}"
+    raise _err(
+        path, None,
+        f"cannot detect the trajectory format from its first lines; "
+        f"pass format= one of {sorted(_READERS)}",
     )
 
 
@@ -799,7 +823,10 @@ def read_trajectory(path: PathLike, format: str = "auto") -> Trajectory:
             f"{os.fspath(path)} is a {fmt} file holding several trajectories; use read_{fmt}()"
         )
     if fmt not in _READERS:
-        raise ValueError(f"unknown format {format!r}; expected 'auto' or one of {sorted(_READERS)}")
+        raise ValueError(
+            f"{os.fspath(path)}: unknown format {format!r}; expected 'auto' or one of "
+            f"{sorted(_READERS)}"
+        )
     return _READERS[fmt](path)
 
 
@@ -826,7 +853,8 @@ def _write_text(path: PathLike, text: str) -> None:
 def write_tum(path: PathLike, traj: Trajectory) -> None:
     """Write ``t tx ty tz qx qy qz qw`` lines (TUM RGB-D format, scalar-last) with a ``#`` header.
 
-    NaN positions are written as ``nan``. Floats use the shortest exact ``repr``.
+    NaN positions and quaternions (lost frames) are written as ``nan``. Floats use the shortest
+    exact ``repr``.
     """
     t, p, q = _writable(traj)
     text = "# timestamp tx ty tz qx qy qz qw\n" + _format_rows([t, p, q[:, 1:], q[:, :1]], " ")
@@ -837,7 +865,8 @@ def write_euroc(path: PathLike, traj: Trajectory) -> None:
     """Write a EuRoC / TUM-VI CSV (integer nanoseconds, metres, scalar-first quaternion).
 
     Times are rounded to the nearest nanosecond (whole seconds and fraction handled separately
-    so epoch times keep their precision); |t| must be below ~9.2e9 s (int64 nanoseconds).
+    so epoch times keep their precision); |t| must be below ~9.2e9 s (int64 nanoseconds). Lost
+    frames (NaN) are written as ``nan``.
     """
     t, p, q = _writable(traj)
     if np.any(np.abs(t) >= 9.2e9):
@@ -855,7 +884,8 @@ def write_euroc(path: PathLike, traj: Trajectory) -> None:
 
 
 def write_csv(path: PathLike, traj: Trajectory) -> None:
-    """Write phjax's plain CSV with header ``t,x,y,z,qw,qx,qy,qz`` (s, m, ``wxyz``)."""
+    """Write phjax's plain CSV with header ``t,x,y,z,qw,qx,qy,qz`` (s, m, ``wxyz``; lost frames
+    as ``nan``)."""
     t, p, q = _writable(traj)
     _write_text(path, ",".join(_CSV_NAMES) + "\n" + _format_rows([t, p, q], ","))
 
@@ -871,15 +901,21 @@ def write_trajectory(path: PathLike, traj: Trajectory, format: str = "auto") -> 
         traj: the :class:`Trajectory`.
         format: ``"auto"``, ``"tum"``, ``"euroc"`` or ``"csv"``.
     """
+    _WRITERS[_writer_format(path, format)](path, traj)
+
+
+def _writer_format(path: PathLike, format: str = "auto") -> str:
+    """The writer :func:`write_trajectory` uses for ``path`` and ``format`` (``ValueError`` when
+    there is none; the CLI checks this before computing)."""
     fmt = format
     if fmt == "auto":
         ext = Path(path).suffix.lower()
         fmt = {".txt": "tum", ".tum": "tum", ".csv": "csv"}.get(ext)
         if fmt is None:
             raise ValueError(
-                f"cannot choose a format from the extension {ext!r}; "
+                f"{os.fspath(path)}: cannot choose a format from the extension {ext!r}; "
                 "pass format='tum', 'euroc' or 'csv'"
             )
     if fmt not in _WRITERS:
         raise ValueError(f"unknown format {format!r}; expected 'auto' or one of {sorted(_WRITERS)}")
-    _WRITERS[fmt](path, traj)
+    return fmt

@@ -10,6 +10,9 @@ import pytest
 from hypothesis import HealthCheck, settings
 
 jax.config.update("jax_enable_x64", True)
+# CLI calls in tests do not write JAX's persistent compilation cache into the user's home
+# (tests/cli/test_cli_cache.py turns it on, in a temporary folder)
+os.environ.setdefault("PHJAX_NO_COMPILATION_CACHE", "1")
 
 settings.register_profile(
     "phjax",

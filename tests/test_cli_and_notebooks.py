@@ -57,15 +57,21 @@ def test_evaluate_on_real_tum_file(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("offline", [False, True])
-def test_smooth_roundtrip(tmp_path, offline):
+def test_smooth_roundtrip(tmp_path, offline, capsys):
     t = np.arange(0, 3, 1 / 30)
     p = np.stack([np.sin(t), np.cos(t), 0.1 * t], -1)
     q = np.tile([1.0, 0, 0, 0], (len(t), 1))
-    p[5] = np.nan  # a lost frame
+    p[5] = np.nan  # lost frames: position, quaternion, both
+    q[9] = np.nan
+    p[12], q[12] = np.nan, np.nan
     src, dst = tmp_path / "in.csv", tmp_path / "out.txt"
     io.write_csv(src, io.Trajectory(t, p, q))
+    assert "nan" in src.read_text()
     args = ["smooth", str(src), "-o", str(dst), "--rate", "90"] + (["--offline"] if offline else [])
     assert main(args) == 0
+    assert "replaced" not in capsys.readouterr().out
+    assert main(args) == 0  # a second run replaces the output and says so
+    assert f"wrote {dst} (replaced the existing file)" in capsys.readouterr().out
     out = io.read_tum(dst)
     assert abs(np.median(np.diff(out.times)) - 1 / 90) < 1e-9
     assert np.all(np.isfinite(out.positions))

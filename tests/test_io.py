@@ -29,12 +29,18 @@ GAZE = np.array([0.0, 0.0, -1.0])  # head-frame gaze direction in phjax's VR con
 
 
 def continuous_reference(q):
-    """Normalise and flip signs with a plain loop (reference for the vectorised reader code)."""
+    """Normalise and flip signs with a plain loop (reference for the vectorised reader code);
+    rows with a NaN are lost frames: all NaN, skipped by the continuity."""
     q = np.array(q, dtype=np.float64)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    for k in range(1, len(q)):
-        if np.dot(q[k], q[k - 1]) < 0:
+    prev = None
+    for k in range(len(q)):
+        if np.isnan(q[k]).any():
+            q[k] = np.nan
+            continue
+        if prev is not None and np.dot(q[k], q[prev]) < 0:
             q[k] = -q[k]
+        prev = k
     return q
 
 
@@ -43,15 +49,22 @@ def assert_canonical(traj: Trajectory):
     assert t.dtype == p.dtype == q.dtype == np.float64
     assert t.shape == (len(t),) and p.shape == (len(t), 3) and q.shape == (len(t), 4)
     assert np.all(np.diff(t) > 0), "times must be strictly increasing"
-    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-12)
-    assert np.all(np.sum(q[1:] * q[:-1], axis=1) >= 0), "hemisphere continuity violated"
-    assert np.all(np.isfinite(t)) and np.all(np.isfinite(q)) and not np.any(np.isinf(p))
+    lost = np.isnan(q).any(axis=1)  # lost frames: whole rows NaN
+    assert np.all(np.isnan(q[lost])) and np.all(np.isfinite(q[~lost]))
+    assert np.all(np.isnan(p).any(axis=1) == np.isnan(p).all(axis=1))
+    qv = q[~lost]
+    np.testing.assert_allclose(np.linalg.norm(qv, axis=1), 1.0, atol=1e-12)
+    assert np.all(np.sum(qv[1:] * qv[:-1], axis=1) >= 0), "hemisphere continuity violated"
+    assert np.all(np.isfinite(t)) and not np.any(np.isinf(p))
 
 
 def same_rotation_rows(a, b, atol):
-    """Row-wise equality up to the q / -q sign."""
-    a = a / np.linalg.norm(a, axis=1, keepdims=True)
-    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    """Row-wise equality up to the q / -q sign (NaN rows must match)."""
+    lost = np.isnan(a).any(axis=1)
+    if not np.array_equal(lost, np.isnan(b).any(axis=1)):
+        return False
+    a = a[~lost] / np.linalg.norm(a[~lost], axis=1, keepdims=True)
+    b = b[~lost] / np.linalg.norm(b[~lost], axis=1, keepdims=True)
     return np.all(np.abs(np.abs(np.sum(a * b, axis=1)) - 1) < atol)
 
 
@@ -98,6 +111,8 @@ def trajectories(draw, times="any"):
         p[:] = np.nan
     elif kind == "some":
         p[draw(arrays(np.bool_, (n,)))] = np.nan
+    if draw(st.booleans()):  # lost frames: NaN quaternion rows (with or without a position)
+        q[draw(arrays(np.bool_, (n,)))] = np.nan
     return Trajectory(t, p, q)
 
 
@@ -110,8 +125,9 @@ def check_roundtrip(src: Trajectory, back: Trajectory, time_atol: float):
     # every sign except after an exactly orthogonal pair (dot == 0), where both choices are valid
     ref = continuous_reference(src.quaternions)
     assert same_rotation_rows(back.quaternions, ref, 1e-12)
-    np.testing.assert_allclose(back.quaternions[0], ref[0], atol=1e-15)
-    dots = np.sum(ref[1:] * ref[:-1], axis=1)
+    np.testing.assert_allclose(back.quaternions[0], ref[0], atol=1e-15)  # NaN == NaN here
+    valid = ref[~np.isnan(ref).any(axis=1)]
+    dots = np.sum(valid[1:] * valid[:-1], axis=1)
     if np.all(dots != 0):
         np.testing.assert_allclose(back.quaternions, ref, atol=1e-12)
 
@@ -559,7 +575,8 @@ MALFORMED = [
     (io.read_tum, "a.txt", f"{TUM_OK}\n2.0 0 0 0 0 0 0 0\n", 2, "zero-norm quaternion"),
     (io.read_tum, "a.txt", f"{TUM_OK}\nnan 0 0 0 0 0 0 1\n", 2, "non-finite timestamp"),
     (io.read_tum, "a.txt", f"{TUM_OK}\n2.0 0 inf 0 0 0 0 1\n", 2, "infinite position"),
-    (io.read_tum, "a.txt", f"{TUM_OK}\n2.0 0 0 0 0 nan 0 1\n", 2, "non-finite quaternion"),
+    (io.read_tum, "a.txt", f"{TUM_OK}\n2.0 0 0 0 0 -inf 0 1\n", 2, "infinite quaternion"),
+    (io.read_tum, "a.txt", "\n", None, "no data"),
     (io.read_tum, "a.txt", "# only comments\n", None, "no data"),
     (io.read_euroc, "a.csv", f"{EUROC}2000000000,0,0,0,1,0,0\n", 3, "expected 8 columns"),
     (io.read_euroc, "a.csv", f"{EUROC}2000000000,0,0,x,1,0,0,0\n", 3, "non-numeric value 'x'"),
@@ -606,8 +623,11 @@ def test_malformed_cwi_and_avtrack(tmp_path):
     p.write_text(head.replace("HMDRZ,", "") + "1,0,1.7,0,0,0,P01_V1,H1,1\n")
     with pytest.raises(TrajectoryFormatError, match=r"line 1: header lacks.*HMDRZ"):
         io.read_cwi(p)
-    p.write_text(head + "1,0,1.7,0,0,0,nan,P01_V1,H1,1\n")
-    with pytest.raises(TrajectoryFormatError, match="line 2: non-finite angle"):
+    p.write_text(head + "1,0,1.7,0,0,0,inf,P01_V1,H1,1\n")
+    with pytest.raises(TrajectoryFormatError, match="line 2: non-finite ViewFrame or infinite"):
+        io.read_cwi(p)
+    p.write_text(head + "1,0,1.7,0,0,0,0,P01_V1,H1,nan\n")
+    with pytest.raises(TrajectoryFormatError, match="line 2: non-finite ViewFrame"):
         io.read_cwi(p)
     p.write_text(head + "1,0,1.7,0,0,0,0,P01_V1,H1,1\n")  # zero angles are fine (identity)
     tr = io.read_cwi(p, participant="P01_V1")
@@ -678,3 +698,110 @@ def test_detect_format_rejects_unknown(tmp_path):
     p.write_text("")
     with pytest.raises(ValueError, match="empty"):
         io.read_trajectory(p)
+
+
+def test_binary_file_is_a_format_error(tmp_path):
+    path = tmp_path / "x.txt"
+    path.write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe\x00\x00")
+    for fn in (io.read_tum, io.detect_format, io.read_trajectory):
+        with pytest.raises(TrajectoryFormatError, match=r"x\.txt: not a UTF-8 text file"):
+            fn(path)
+
+
+# ------------------------------------------------------------------------------------------------
+# lost frames: NaN rows (position, quaternion or both) in every reader and writer
+# ------------------------------------------------------------------------------------------------
+
+# rows: (t, position or None for NaN, xyzw quaternion or None for NaN); row 4 has a partial NaN in
+# both parts; the last quaternion is -(first), so continuity must look past the lost frames
+_ROWS = [
+    (1.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)),
+    (2.0, None, (0.0, 0.0, 0.0, 1.0)),
+    (3.0, (1.0, 2.0, 3.0), None),
+    (4.0, None, None),
+    (5.0, (1.0, np.nan, 3.0), (0.0, 0.0, 0.5, np.nan)),
+    (6.0, (0.5, 0.0, 0.0), (0.0, 0.0, 0.0, -1.0)),
+]
+_POS_LOST = [False, True, False, True, True, False]
+_Q_LOST = [False, False, True, True, True, False]
+
+
+def _fmt(x):
+    return repr(float(x))
+
+
+def _lost_frame_files():
+    nan3, nan4 = (np.nan,) * 3, (np.nan,) * 4
+    rows = [(t, nan3 if p is None else p, nan4 if q is None else q) for t, p, q in _ROWS]
+    tum = "".join(" ".join(map(_fmt, (t, *p, *q))) + "\n" for t, p, q in rows)
+    euroc = "#t,px,py,pz,qw,qx,qy,qz\n" + "".join(
+        ",".join([str(int(t * 1e9))] + [_fmt(v) for v in (*p, q[3], *q[:3])]) + "\n"
+        for t, p, q in rows)
+    csv_ = "t,x,y,z,qw,qx,qy,qz\n" + "".join(
+        ",".join(map(_fmt, (t, *p, q[3], *q[:3]))) + "\n" for t, p, q in rows)
+    corb = "timestamp viewpoint w x y z\n" + "".join(
+        " ".join(map(_fmt, (t, 0, q[3], *q[:3]))) + "\n" for t, p, q in rows)
+    hach = "".join(f"q;{int(t * 1000)};" + ",".join(map(_fmt, q)) + ",\n" for t, p, q in rows)
+    return [(io.read_tum, "l.txt", tum, True), (io.read_euroc, "l.csv", euroc, True),
+            (io.read_csv, "l.csv", csv_, True), (io.read_corbillon, "l.txt", corb, False),
+            (io.read_hachaj, "l.log", hach, False)]
+
+
+@pytest.mark.parametrize("reader, fname, content, has_pos", _lost_frame_files(),
+                         ids=["tum", "euroc", "csv", "corbillon", "hachaj"])
+def test_nan_rows_are_lost_frames_in_every_reader(tmp_path, reader, fname, content, has_pos):
+    path = tmp_path / fname
+    path.write_text(content)
+    tr = no_warnings(reader, path)
+    assert_canonical(tr)
+    np.testing.assert_allclose(tr.times, np.arange(1.0, 7.0))  # every row kept
+    np.testing.assert_array_equal(np.isnan(tr.quaternions).all(axis=1), _Q_LOST)
+    if has_pos:
+        np.testing.assert_array_equal(np.isnan(tr.positions).all(axis=1), _POS_LOST)
+        np.testing.assert_array_equal(tr.positions[2], [1.0, 2.0, 3.0])
+    else:
+        assert not tr.has_positions()
+    # continuity across the lost frames: the last row is flipped to the first one's sign
+    np.testing.assert_array_equal(tr.quaternions[[0, 1, 5]], np.tile([1.0, 0, 0, 0], (3, 1)))
+    if reader in (io.read_tum, io.read_euroc, io.read_csv):  # auto-detected as well
+        np.testing.assert_array_equal(io.read_trajectory(path).quaternions, tr.quaternions)
+
+
+def test_nan_angles_are_lost_frames_in_vr_readers(tmp_path):
+    head = "FrameNumber,HMDPX,HMDPY,HMDPZ,HMDRX,HMDRY,HMDRZ,Participant,Dataset,ViewFrame\n"
+    p = tmp_path / "c.csv"
+    p.write_text(head + "1,0,1.7,0,0,0,0,P,H1,1\n2,nan,nan,nan,0,0,0,P,H1,2\n"
+                 "3,0,1.7,0,nan,0,0,P,H1,3\n4,0,1.7,0,0,10,0,P,H1,4\n")
+    tr = io.read_cwi(p, participant="P")
+    np.testing.assert_array_equal(np.isnan(tr.positions).all(axis=1), [0, 1, 0, 0])
+    np.testing.assert_array_equal(np.isnan(tr.quaternions).all(axis=1), [0, 0, 1, 0])
+    assert_canonical(tr)
+    samples = [{"pitch": 0, "yaw": 0, "roll": 0, "sec": 0.0},
+               {"pitch": float("nan"), "yaw": 3, "roll": 0, "sec": 0.1},
+               {"pitch": 0, "yaw": 5, "roll": 0, "sec": 0.2}]
+    j = tmp_path / "a.json"
+    j.write_text(json.dumps({"data": [{"filename": "1.mp4", "pitch_yaw_roll_data_hmd": samples}]}))
+    tr = io.read_avtrack360(j)["1.mp4"]
+    np.testing.assert_array_equal(np.isnan(tr.quaternions).all(axis=1), [0, 1, 0])
+    assert_canonical(tr)
+    samples[1]["sec"] = float("nan")  # a time is never missing
+    j.write_text(json.dumps({"data": [{"filename": "1.mp4", "pitch_yaw_roll_data_hmd": samples}]}))
+    with pytest.raises(TrajectoryFormatError, match=r"\[1\]: missing or non-finite 'sec'"):
+        io.read_avtrack360(j)
+
+
+@pytest.mark.parametrize("writer, fname", [(io.write_tum, "w.txt"), (io.write_csv, "w.csv"),
+                                           (io.write_euroc, "w.csv")])
+def test_writers_keep_lost_frames(tmp_path, writer, fname):
+    t = np.arange(1.0, 5.0)
+    p = np.array([[0.0, 0, 0], [np.nan] * 3, [1.0, 2, 3], [np.nan] * 3])
+    q = np.array([[1.0, 0, 0, 0], [1.0, 0, 0, 0], [np.nan] * 4, [np.nan] * 4])
+    tr = Trajectory.from_arrays(t, q, p)
+    path = tmp_path / fname
+    writer(path, tr)
+    back = io.read_trajectory(path)
+    np.testing.assert_allclose(back.times, t, atol=1e-9)
+    np.testing.assert_array_equal(back.positions, p)
+    np.testing.assert_array_equal(back.quaternions, q)
+    with pytest.raises(ValueError, match="infinite"):
+        writer(path, tr._replace(quaternions=np.where(np.isnan(q), np.inf, q)))

@@ -17,11 +17,14 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["main", "build_parser"]
+from ._common import INPUT_FORMATS, Parser, format_user_error, positive_int, read_input
+
+__all__ = ["build_parser", "main"]
 
 
 def _enable_x64():
@@ -31,17 +34,29 @@ def _enable_x64():
 
 
 # ------------------------------------------------------------------------------ demo-curve
-def _tum_hermite_data(path: Path | None, n_max: int, stride: int):
-    """Consecutive poses -> Hermite data (positions and finite-difference velocities x dt)."""
-    if path is not None and path.exists():
-        data = np.loadtxt(path)
-        times, pos = data[::stride, 0], data[::stride, 1:4]
-        source = f"{path} (every {stride}. pose)"
+def _tum_hermite_data(path: Path | None, n_max: int, stride: int, fmt: str = "auto"):
+    """Consecutive poses -> Hermite data (positions and finite-difference velocities x dt).
+
+    ``path`` is read through :mod:`phjax.io` (lost frames, rows without a position, are
+    skipped); ``None``: a synthetic random walk.
+    """
+    if path is not None:
+        from ..io import TrajectoryFormatError
+
+        traj = read_input(path, fmt)
+        ok = np.isfinite(traj.positions).all(-1)
+        times, pos = traj.times[ok][::stride], traj.positions[ok][::stride]
+        if len(times) < 2:
+            raise TrajectoryFormatError(
+                f"{path}: {len(times)} pose(s) with a position"
+                + (f" at --stride {stride}" if stride > 1 else "") + "; at least 2 are needed",
+                path=path)
+        source = f"{path} (every {stride}. pose)" if stride > 1 else str(path)
     else:
         rng = np.random.default_rng(0)
         times = np.arange(0, 30, 0.01 * stride)
         pos = np.cumsum(rng.normal(size=(times.size, 3)) * 0.002, axis=0)
-        source = "synthetic random walk (shared data not found)"
+        source = "synthetic random walk (no file given and the shared fr1_xyz data not found)"
     times, pos = times[: n_max + 1], pos[: n_max + 1]
     vel = np.gradient(pos, times, axis=0)
     dt = np.diff(times)[:, None]
@@ -58,11 +73,13 @@ def cmd_demo_curve(args) -> int:
 
     if args.x64:
         _enable_x64()
-    root = shared_data_dir()
-    path = Path(args.input) if args.input else (
-        root / "tum_rgbd_groundtruth" / "fr1_xyz-groundtruth.txt" if root else None
-    )
-    p0, p1, d0, d1, source = _tum_hermite_data(path, args.segments, args.stride)
+    if args.input:
+        path = Path(args.input)
+    else:  # the shared fr1_xyz ground truth when present, else synthetic data (said so)
+        root = shared_data_dir()
+        path = None if root is None else root / "tum_rgbd_groundtruth" / "fr1_xyz-groundtruth.txt"
+        path = path if path is not None and path.is_file() else None
+    p0, p1, d0, d1, source = _tum_hermite_data(path, args.segments, args.stride, args.format)
     build = jax.jit(pj.hermite_quintic)
     t0 = time.perf_counter()
     curves = jax.block_until_ready(build(p0, p1, d0, d1))
@@ -95,23 +112,45 @@ def cmd_demo_curve(args) -> int:
 
 
 # ------------------------------------------------------------------------------- parser
+_EPILOG = """\
+Compilation cache: the first run of a command compiles its JAX programs (tens of seconds); they
+are cached in $PHJAX_CACHE_DIR, else $XDG_CACHE_HOME/phjax/jax, else ~/.cache/phjax/jax, and
+later runs load them (a one-line note on stderr says when a first run compiles). Opt out with
+--no-cache or PHJAX_NO_COMPILATION_CACHE=1; delete the folder to clear it.
+
+Bad input (a missing, empty or malformed file, a folder, too few poses, a rate <= 0, an unknown
+format) ends with one line 'phjax <command>: error: ...' naming the file (and the line) on
+stderr and exit status 2. Output files are named in each command's --help; an existing file is
+replaced and the line naming the written file says so."""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="phjax",
         description="Smooth, predictive head and camera tracking with PH quintics (JAX).",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--no-cache", action="store_true",
+                        help="do not use JAX's persistent compilation cache (see below)")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("demo-curve", help="PH quintics from consecutive poses of a TUM trajectory",
                        description="Build a batch of PH quintic Hermite segments between "
-                       "consecutive poses (finite-difference velocities) of "
-                       "../shared/data/tum_rgbd_groundtruth/fr1_xyz (or a TUM file you name; "
-                       "synthetic data if neither exists) and print arc length, curvature, "
-                       "torsion and timing.")
-    p.add_argument("input", nargs="?", help="TUM trajectory file (default: fr1_xyz ground truth)")
-    p.add_argument("--segments", type=int, default=100000, help="maximum number of segments")
-    p.add_argument("--stride", type=int, default=1, help="use every STRIDE-th pose")
-    p.add_argument("--samples", type=int, default=100, help="samples per segment for timing")
+                       "consecutive poses (finite-difference velocities) of a trajectory file "
+                       "you name (read with phjax.io; rows without a position are skipped), by "
+                       "default ../shared/data/tum_rgbd_groundtruth/fr1_xyz (synthetic data when "
+                       "no file is named and that one is absent), and print arc length, "
+                       "curvature, torsion and timing. Writes no file.")
+    p.add_argument("input", nargs="?", help="trajectory file (TUM, EuRoC, CSV; default: the "
+                   "fr1_xyz ground truth)")
+    p.add_argument("--format", default="auto", choices=INPUT_FORMATS,
+                   help="input format (default auto)")
+    p.add_argument("--segments", type=positive_int, default=100000,
+                   help="maximum number of segments")
+    p.add_argument("--stride", type=positive_int, default=1, help="use every STRIDE-th pose")
+    p.add_argument("--samples", type=positive_int, default=100,
+                   help="samples per segment for timing")
     p.add_argument("--x64", action="store_true", help="compute in float64")
     p.set_defaults(func=cmd_demo_curve)
 
@@ -120,18 +159,46 @@ def build_parser() -> argparse.ArgumentParser:
     _tracking.add_commands(sub)
     _tune.add_commands(sub)
     _rgbd.add_commands(sub)
+    for command in sub.choices.values():  # also accepted after the command name
+        command.add_argument("--no-cache", action="store_true", default=argparse.SUPPRESS,
+                             help="do not use JAX's persistent compilation cache "
+                             "(see 'phjax --help')")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``phjax`` command."""
+    """Entry point of the ``phjax`` command; returns the exit status.
+
+    JAX's persistent compilation cache is on while the command runs (see :mod:`._cache`).
+    The one place where user errors become messages: a usage error (argparse) or any
+    ``ValueError`` (including :class:`phjax.io.TrajectoryFormatError`) or ``OSError`` (missing
+    file, folder, permissions) raised by a command prints ONE line
+    ``phjax <command>: error: ...`` on stderr and returns 2; no traceback.
+    """
     parser = build_parser()
-    args = parser.parse_args(argv)
     try:
-        return args.func(args)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"phjax {args.command}: error: {err}", file=sys.stderr)
-        return 2
+        args = parser.parse_args(argv)
+    except SystemExit as stop:  # --help (0) or a usage error (2, its line already printed)
+        return stop.code if isinstance(stop.code, int) else 2
+    from ..io import TrajectoryWarning
+    from ._cache import cache_disabled, compilation_cache
+
+    with warnings.catch_warnings(), compilation_cache(not cache_disabled(args.no_cache)):
+        previous = warnings.showwarning
+
+        def one_line(message, category, filename, lineno, file=None, line=None):
+            # trajectory warnings (unsorted / duplicate timestamps) as one line each
+            if issubclass(category, TrajectoryWarning):
+                print(f"phjax: warning: {message}", file=sys.stderr if file is None else file)
+            else:
+                previous(message, category, filename, lineno, file, line)
+
+        warnings.showwarning = one_line
+        try:
+            return args.func(args)
+        except (ValueError, OSError) as err:
+            print(f"phjax {args.command}: error: {format_user_error(err)}", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":

@@ -7,6 +7,8 @@ from collections import Counter
 
 import numpy as np
 
+from ._common import check_output, positive_float, positive_int, replaced_note
+
 
 def _relative_rotation_errors(est_q: np.ndarray, gt_q: np.ndarray) -> np.ndarray:
     """Angle (deg) between the estimated and true head rotations relative to the first frame
@@ -27,6 +29,9 @@ def cmd_track_rgbd(args) -> int:
     from ..vision.rgbd_io import open_rgbd
     from ..tracking.tracker import track
 
+    check_output(args.output)
+    if args.raw:
+        check_output(args.raw)
     seq = open_rgbd(args.source)
     n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
     if n == 0:
@@ -81,8 +86,9 @@ def cmd_track_rgbd(args) -> int:
     if not ok.any():
         raise ValueError("no frame produced a head pose; nothing to track")
     if args.raw:
+        note = replaced_note(args.raw)
         write_trajectory(args.raw, Trajectory(times[ok], pos[ok], quat[ok]))
-        print(f"per-frame poses written to {args.raw}")
+        print(f"per-frame poses written to {args.raw}{note}")
     gt = seq.ground_truth
     if gt is not None and seq.ground_truth_kind == "head" and ok.sum() > 1:
         gq = np.asarray(gt.quaternions[:n])
@@ -96,8 +102,9 @@ def cmd_track_rgbd(args) -> int:
     p_r, q_r = track(times, pos, quat, render)
     p_r, q_r = np.asarray(p_r, np.float64), np.asarray(q_r, np.float64)
     good = np.isfinite(q_r).all(-1) & np.isfinite(p_r).all(-1)
+    note = replaced_note(args.output)
     write_trajectory(args.output, Trajectory(render[good], p_r[good], q_r[good]))
-    print(f"causal stream: {good.sum()} poses at {args.rate:g} Hz written to {args.output}")
+    print(f"causal stream: {good.sum()} poses at {args.rate:g} Hz written to {args.output}{note}")
     return 0
 
 
@@ -110,8 +117,10 @@ def add_commands(sub) -> None:
         "as a TUM trajectory (head pose in the colour camera frame). SOURCE: a Biwi Kinect "
         "folder, a TUM RGB-D folder, a color/ + depth/ folder, or 'synthetic[:N[:SEED]]'.")
     p.add_argument("source", help="RGB-D source (folder or synthetic[:N[:SEED]])")
-    p.add_argument("-o", "--output", required=True, help="output trajectory (.tum/.txt = TUM)")
-    p.add_argument("--rate", type=float, default=120.0, help="render rate, Hz (default 120)")
+    p.add_argument("-o", "--output", required=True,
+                   help="output: the render-rate trajectory (.tum/.txt = TUM, .csv = CSV); an "
+                   "existing file is replaced (the output says so)")
+    p.add_argument("--rate", type=positive_float, default=120.0, help="render rate, Hz (default 120)")
     p.add_argument("--backend", choices=("opencv", "kornia"), default="opencv",
                    help="face detector backend (default opencv)")
     p.add_argument("--model-dir", default=None,
@@ -123,10 +132,12 @@ def add_commands(sub) -> None:
                    help="keypoint type (default orb)")
     p.add_argument("--icp", choices=("projective", "nearest", "none"), default="projective",
                    help="ICP refinement (default projective)")
-    p.add_argument("--detect-interval", type=int, default=1,
+    p.add_argument("--detect-interval", type=positive_int, default=1,
                    help="run the face detector every n-th frame (default 1)")
-    p.add_argument("--max-frames", type=int, default=None, help="process at most N frames")
-    p.add_argument("--raw", default=None, help="also write the per-frame poses to this file")
+    p.add_argument("--max-frames", type=positive_int, default=None, help="process at most N frames")
+    p.add_argument("--raw", default=None,
+                   help="output: also write the per-frame poses to this file (TUM/CSV by "
+                   "extension; replaced when it exists)")
     p.add_argument("--gt-reference", action="store_true",
                    help="use the ground-truth pose of the first frame as the reference")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -6,6 +6,16 @@ import time
 
 import numpy as np
 
+from ._common import (
+    INPUT_FORMATS,
+    OUTPUT_FORMATS,
+    check_output,
+    nonnegative_float,
+    positive_float,
+    read_input,
+    replaced_note,
+    unit_interval,
+)
 from ._tune import add_config_argument
 
 
@@ -28,6 +38,8 @@ def _run_evaluation(times, positions, quaternions, args, title: str) -> int:
     from ..evaluation.report import default_methods, evaluate_recording, format_table, plot_evaluation
 
     config = config_from_args(args)
+    if args.plot:
+        check_output(args.plot, "plot")
     t0 = time.perf_counter()
     result = evaluate_recording(times, positions, quaternions, sensor=_sensor(args),
                                 render_rate=args.rate, seed=args.seed, progress=not args.no_progress,
@@ -40,8 +52,9 @@ def _run_evaluation(times, positions, quaternions, args, title: str) -> int:
     print()
     print(format_table(result.metrics, result.causal))
     if args.plot:
+        note = replaced_note(args.plot)
         path = plot_evaluation(result, args.plot)
-        print(f"\nplot written to {path}")
+        print(f"\nplot written to {path}{note}")
     return 0
 
 
@@ -67,6 +80,7 @@ def _demo_rgbd(args) -> int:
             print("YuNet model not in the cache: downloading it (sha256-checked)")
             face_detection.download_model(face_detection.YUNET_ONNX)
     out = Path(args.plot).with_suffix(".tum") if args.plot else Path(tempfile.gettempdir()) / "phjax_demo_rgbd.tum"
+    check_output(out)
     ns = argparse.Namespace(source=f"synthetic:{args.rgbd}:{args.seed}", output=str(out), rate=args.rate,
                             backend="opencv", model_dir=None, download_models=False, features="orb",
                             icp="projective", detect_interval=1, max_frames=None, raw=None,
@@ -81,9 +95,7 @@ def cmd_demo(args) -> int:
     if args.rgbd:
         return _demo_rgbd(args)
     if args.input:
-        from ..io import read_trajectory
-
-        traj = read_trajectory(args.input)
+        traj = read_input(args.input, args.format)
         return _run_evaluation(traj.times, traj.positions, traj.quaternions, args, f"phjax demo on {args.input}")
     from ..motion.simulate import synthetic_head_motion
 
@@ -93,45 +105,57 @@ def cmd_demo(args) -> int:
 
 def cmd_evaluate(args) -> int:
     _x64()
-    from ..io import read_trajectory
-
-    traj = read_trajectory(args.ground_truth, format=args.format)
+    traj = read_input(args.ground_truth, args.format)
     return _run_evaluation(traj.times, traj.positions, traj.quaternions, args,
                            f"phjax evaluate {args.ground_truth}")
 
 
 def cmd_smooth(args) -> int:
     _x64()
-    from ..io import Trajectory, read_trajectory, write_trajectory
+    from ..io import Trajectory, _writer_format, write_trajectory
     from ..tracking.tracker import reconstruct, track
-
-    traj = read_trajectory(args.input, format=args.format)
-    render = np.arange(traj.times[0], traj.times[-1], 1.0 / args.rate)
     from ._tune import config_from_args
+
+    _writer_format(args.output, args.out_format)  # before any work: a usable output name
+    check_output(args.output)
+    config = config_from_args(args)
+    traj = read_input(args.input, args.format)
+    render = np.arange(traj.times[0], traj.times[-1], 1.0 / args.rate)
 
     fn = reconstruct if args.offline else track
     t0 = time.perf_counter()
-    p, q = fn(traj.times, traj.positions, traj.quaternions, render, config=config_from_args(args))
+    p, q = fn(traj.times, traj.positions, traj.quaternions, render, config=config)
     p, q = np.asarray(p, np.float64), np.asarray(q, np.float64)
     ok = np.isfinite(q).all(-1)
     out = Trajectory(render[ok], p[ok], q[ok])
+    note = replaced_note(args.output)
     write_trajectory(args.output, out, format=args.out_format)
     print(f"{'offline' if args.offline else 'causal'} stream: {traj.num_samples} poses -> "
-          f"{out.num_samples} at {args.rate:g} Hz in {time.perf_counter() - t0:.2f} s; wrote {args.output}")
+          f"{out.num_samples} at {args.rate:g} Hz in {time.perf_counter() - t0:.2f} s; "
+          f"wrote {args.output}{note}")
     return 0
 
 
-def _sensor_args(p):
+def _sensor_args(p, rgbd: bool = False):
     g = p.add_argument_group("sensor model")
-    g.add_argument("--camera-rate", type=float, default=30.0, help="measurement rate, Hz (default 30)")
-    g.add_argument("--sigma-p", type=float, default=5.0, help="position noise std, mm (default 5)")
-    g.add_argument("--sigma-r", type=float, default=1.0, help="rotation noise std per axis, deg (default 1)")
-    g.add_argument("--dropout", type=float, default=0.05, help="fraction of lost frames (default 0.05)")
-    g.add_argument("--jitter", type=float, default=0.0, help="timestamp jitter, fraction of the period")
-    p.add_argument("--rate", type=float, default=120.0, help="render rate, Hz (default 120)")
+    g.add_argument("--camera-rate", type=positive_float, default=30.0,
+                   help="measurement rate, Hz (default 30)")
+    g.add_argument("--sigma-p", type=nonnegative_float, default=5.0,
+                   help="position noise std, mm (default 5)")
+    g.add_argument("--sigma-r", type=nonnegative_float, default=1.0,
+                   help="rotation noise std per axis, deg (default 1)")
+    g.add_argument("--dropout", type=unit_interval, default=0.05,
+                   help="fraction of lost frames (default 0.05)")
+    g.add_argument("--jitter", type=nonnegative_float, default=0.0,
+                   help="timestamp jitter, fraction of the period")
+    p.add_argument("--rate", type=positive_float, default=120.0, help="render rate, Hz (default 120)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--plot", default="phjax_evaluation.png",
-                   help="PNG plot path (default phjax_evaluation.png; '' for none)")
+    p.add_argument("--plot", default="phjax_evaluation.png", metavar="PNG",
+                   help="output: the PNG plot (default phjax_evaluation.png in the current "
+                   "folder; '' for none); an existing file is replaced (the output says so)"
+                   + ("; with --rgbd no plot is drawn and the render-rate stream goes to this "
+                      "path with the suffix .tum (default phjax_evaluation.tum; a temporary "
+                      "file with --plot '')" if rgbd else ""))
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_config_argument(p)
 
@@ -143,33 +167,48 @@ def add_commands(sub) -> None:
         "package's synthetic seated-VR head motion; or a trajectory file you name), run the causal "
         "phjax stream, the offline reconstruction and every baseline (tuned Kalman CV "
         "extrapolation, One Euro, raw hold, scipy cubic spline, linear/slerp), print the metrics "
-        "table and write a PNG plot.")
+        "table and write a PNG plot (--plot, default phjax_evaluation.png; with --rgbd the "
+        "render-rate stream phjax_evaluation.tum instead).")
     p.add_argument("input", nargs="?", help="optional ground-truth trajectory file (TUM, EuRoC, CSV, ...)")
-    p.add_argument("--duration", type=float, default=60.0, help="length of the synthetic motion, s")
+    p.add_argument("--format", default="auto", choices=INPUT_FORMATS,
+                   help="format of INPUT (default auto)")
+    p.add_argument("--duration", type=positive_float, default=60.0,
+                   help="length of the synthetic motion, s")
     p.add_argument("--rgbd", type=int, default=0, metavar="N",
                    help="instead: the end-to-end path on N frames of the package's synthetic RGB-D "
                    "head (YuNet + features + depth + ICP head pose, then the tracker); the YuNet "
                    "model is taken from the cache, seeded from ../shared/data when present, else "
                    "downloaded")
-    _sensor_args(p)
+    _sensor_args(p, rgbd=True)
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("evaluate", help="metrics of phjax and every baseline on a ground-truth file",
-                       description="Like 'demo' on a ground-truth trajectory file.")
+                       description="Like 'demo' on a ground-truth trajectory file: print the "
+                       "metrics table and write the PNG plot (--plot, default "
+                       "phjax_evaluation.png).")
     p.add_argument("ground_truth", help="ground-truth trajectory (TUM .txt, EuRoC/TUM-VI .csv, phjax .csv)")
-    p.add_argument("--format", default="auto", help="input format (auto, tum, euroc, csv, corbillon, hachaj)")
+    p.add_argument("--format", default="auto", choices=INPUT_FORMATS,
+                   help="input format (default auto)")
     _sensor_args(p)
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("smooth", help="render a recorded pose stream at a given rate",
-                       description="Read measured poses (NaN rows = lost frames), run the causal "
-                       "phjax stream (or the offline reconstruction with --offline) and write "
-                       "the poses at --rate.")
+                       description="Read measured poses (any phjax.io format; a row whose "
+                       "position and/or quaternion is NaN is a lost frame for that part and is "
+                       "bridged by the tracker), run the causal phjax stream (or the offline "
+                       "reconstruction with --offline) and write the poses at --rate to OUTPUT "
+                       "(render times before the first valid pose are left out). At least 2 "
+                       "poses are needed.")
     p.add_argument("input", help="measured trajectory file")
-    p.add_argument("-o", "--output", required=True, help="output file (.txt = TUM, .csv = plain CSV)")
-    p.add_argument("--rate", type=float, default=120.0, help="output rate, Hz (default 120)")
+    p.add_argument("-o", "--output", required=True,
+                   help="output file (.txt/.tum = TUM, .csv = plain CSV; see --out-format); an "
+                   "existing file is replaced (the output says so)")
+    p.add_argument("--rate", type=positive_float, default=120.0,
+                   help="output rate, Hz (default 120)")
     p.add_argument("--offline", action="store_true", help="offline reconstruction (uses the future)")
-    p.add_argument("--format", default="auto", help="input format (default auto)")
-    p.add_argument("--out-format", default="auto", help="output format (auto by extension, tum, csv, euroc)")
+    p.add_argument("--format", default="auto", choices=INPUT_FORMATS,
+                   help="input format (default auto)")
+    p.add_argument("--out-format", default="auto", choices=OUTPUT_FORMATS,
+                   help="output format (default auto: by the extension of OUTPUT)")
     add_config_argument(p)
     p.set_defaults(func=cmd_smooth)

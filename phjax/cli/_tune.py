@@ -12,6 +12,17 @@ from pathlib import Path
 
 import numpy as np
 
+from ._common import (
+    INPUT_FORMATS,
+    check_output,
+    nonnegative_float,
+    positive_float,
+    positive_int,
+    read_input,
+    replaced_note,
+    unit_interval,
+)
+
 __all__ = ["add_commands", "add_config_argument", "config_from_args", "cmd_tune"]
 
 
@@ -44,7 +55,6 @@ def cmd_tune(args) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from ..io import read_trajectory
     from ..motion.simulate import SensorModel
     from ..tracking.tracker import TrackerConfig
     from ..tracking.tuning import DEFAULT_PARAMETERS, prepare_recordings, save_config, tune_tracker
@@ -57,7 +67,8 @@ def cmd_tune(args) -> int:
     start = TrackerConfig() if start is None else start
     params = DEFAULT_PARAMETERS if not args.parameters else tuple(
         p.strip() for p in args.parameters.split(",") if p.strip())
-    trajs = [read_trajectory(f, format=args.format) for f in args.train]
+    check_output(args.output)
+    trajs = [read_input(f, args.format) for f in args.train]
     sensor = SensorModel(rate=args.camera_rate, sigma_p=args.sigma_p / 1e3,
                          sigma_r=float(np.deg2rad(args.sigma_r)), dropout=args.dropout,
                          jitter=args.jitter)
@@ -98,6 +109,7 @@ def cmd_tune(args) -> int:
         "steps": res.num_steps,
         "loss": {"initial": res.initial_loss, "final": res.final_loss},
     }
+    note = replaced_note(args.output)
     path = save_config(args.output, config, metadata=meta)
     print()
     print(f"{res.message} after {res.num_steps} steps ({res.num_accepted_steps} accepted); "
@@ -117,7 +129,7 @@ def cmd_tune(args) -> int:
         cells = [f"{_ratio(res.initial_terms[i, k], res.reference[i, k])} -> "
                  f"{_ratio(res.terms[i, k], res.reference[i, k])}" for k in range(4)]
         print(f"| {name} | " + " | ".join(cells) + " |")
-    print(f"\nwrote {path}")
+    print(f"\nwrote {path}{note}")
     return 0
 
 
@@ -135,11 +147,14 @@ def add_commands(sub) -> None:
                    help="ground-truth trajectory file(s) (TUM, EuRoC, CSV, ...)")
     p.add_argument("--lambda", dest="lam", type=float, required=True,
                    help="weight of the jerk terms (0 = accuracy only; 1 = equal weight)")
-    p.add_argument("-o", "--output", required=True, help="output JSON file")
-    p.add_argument("--format", default="auto", help="input format (default auto)")
-    p.add_argument("--seconds", type=float, default=None,
+    p.add_argument("-o", "--output", required=True,
+                   help="output JSON file (the tuned configuration); an existing file is "
+                   "replaced (the output says so)")
+    p.add_argument("--format", default="auto", choices=INPUT_FORMATS,
+                   help="input format (default auto)")
+    p.add_argument("--seconds", type=positive_float, default=None,
                    help="use only the first S seconds of each file")
-    p.add_argument("--max-steps", type=int, default=50, help="maximum BFGS steps (default 50)")
+    p.add_argument("--max-steps", type=positive_int, default=50, help="maximum BFGS steps (default 50)")
     p.add_argument("--parameters", default=None,
                    help="comma-separated parameters to tune (default: pos_process_noise, "
                    "rot_process_noise, pos_meas_noise, rot_meas_noise, horizon)")
@@ -149,15 +164,15 @@ def add_commands(sub) -> None:
                    help="weight of the rotation terms (default 1)")
     add_config_argument(p)
     g = p.add_argument_group("sensor model and rendering")
-    g.add_argument("--rate", type=float, default=120.0, help="render rate, Hz (default 120)")
-    g.add_argument("--camera-rate", type=float, default=30.0,
+    g.add_argument("--rate", type=positive_float, default=120.0, help="render rate, Hz (default 120)")
+    g.add_argument("--camera-rate", type=positive_float, default=30.0,
                    help="measurement rate, Hz (default 30)")
-    g.add_argument("--sigma-p", type=float, default=5.0, help="position noise std, mm (default 5)")
-    g.add_argument("--sigma-r", type=float, default=1.0,
+    g.add_argument("--sigma-p", type=nonnegative_float, default=5.0, help="position noise std, mm (default 5)")
+    g.add_argument("--sigma-r", type=nonnegative_float, default=1.0,
                    help="rotation noise std per axis, deg (default 1)")
-    g.add_argument("--dropout", type=float, default=0.05,
+    g.add_argument("--dropout", type=unit_interval, default=0.05,
                    help="fraction of lost frames (default 0.05)")
-    g.add_argument("--jitter", type=float, default=0.0,
+    g.add_argument("--jitter", type=nonnegative_float, default=0.0,
                    help="timestamp jitter, fraction of the period")
     g.add_argument("--seed", type=int, default=0, help="random seed of the sensor simulation")
     p.set_defaults(func=cmd_tune)

@@ -1,0 +1,85 @@
+"""JAX's persistent compilation cache for the ``phjax`` command (never at library import).
+
+The first run of a command compiles its JAX programs (tens of seconds on a laptop CPU); the
+compiled executables are stored in a folder under the user's cache and later runs load them
+instead of compiling. Folder: ``$PHJAX_CACHE_DIR``, else ``$XDG_CACHE_HOME/phjax/jax``, else
+``~/.cache/phjax/jax``. Opt out with ``--no-cache`` or ``PHJAX_NO_COMPILATION_CACHE=1``.
+
+Only :func:`phjax.cli.main` turns the cache on, for the duration of one command, and restores
+JAX's previous settings afterwards (so calling ``main`` from Python leaves no global change).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+__all__ = ["MIN_COMPILE_SECONDS", "cache_dir", "cache_disabled", "compilation_cache"]
+
+#: programs that took less than this to compile are not written to the cache (JAX's default,
+#: 1 s, would leave out most of the tracker's and the evaluation's programs)
+MIN_COMPILE_SECONDS = 0.1
+
+_CONFIG = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+
+
+def cache_dir() -> Path:
+    """The compilation cache folder: ``$PHJAX_CACHE_DIR``, else ``$XDG_CACHE_HOME/phjax/jax``,
+    else ``~/.cache/phjax/jax``."""
+    if os.environ.get("PHJAX_CACHE_DIR"):
+        return Path(os.environ["PHJAX_CACHE_DIR"]).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path("~/.cache").expanduser())
+    return Path(base) / "phjax" / "jax"
+
+
+def cache_disabled(no_cache: bool = False) -> bool:
+    """Whether the cache is off: ``--no-cache`` or ``PHJAX_NO_COMPILATION_CACHE`` set to
+    anything but ``""``, ``0``, ``false``, ``no``, ``off``."""
+    env = os.environ.get("PHJAX_NO_COMPILATION_CACHE", "").strip().lower()
+    return bool(no_cache) or env not in ("", "0", "false", "no", "off")
+
+
+@contextlib.contextmanager
+def compilation_cache(enabled: bool = True, hint: bool = True) -> Iterator[Path | None]:
+    """Turn JAX's persistent compilation cache on for the ``with`` block.
+
+    Arguments:
+        enabled: ``False``: do nothing (yields ``None``).
+        hint: print one line on stderr before the first compilation when the cache folder is
+            empty (a first run: compiling takes a while).
+
+    Yields:
+        The cache folder (created by JAX on the first compilation), or ``None``.
+    """
+    if not enabled:
+        yield None
+        return
+    import jax
+    import jax.monitoring
+    from jax.experimental.compilation_cache import compilation_cache as cc
+
+    path = cache_dir()
+    first_run = not path.is_dir() or not any(path.iterdir())
+    previous = {name: getattr(jax.config, name) for name in _CONFIG}
+    state = {"hinted": not (hint and first_run)}
+
+    def on_event(event: str, **_):
+        if event == "/jax/compilation_cache/compile_requests_use_cache" and not state["hinted"]:
+            state["hinted"] = True
+            print(f"phjax: compiling (first run; cached in {path}, later runs start faster) ...",
+                  file=sys.stderr, flush=True)
+
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
+    cc.reset_cache()  # a cache another folder initialised earlier in this process
+    jax.monitoring.register_event_listener(on_event)
+    try:
+        yield path
+    finally:
+        jax.monitoring.unregister_event_listener(on_event)
+        for name, value in previous.items():
+            jax.config.update(name, value)
+        cc.reset_cache()

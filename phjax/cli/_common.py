@@ -1,0 +1,140 @@
+"""Shared pieces of the ``phjax`` CLI: the one-line error path, argument types, input files read
+through :mod:`phjax.io`, output-file checks.
+
+User errors (bad arguments, missing / unreadable / malformed files, too little data) end in
+:func:`phjax.cli.main` as ONE line on stderr, ``phjax <command>: error: <what>`` naming the file
+(and the line for a malformed row), with exit status 2 and no traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from pathlib import Path
+
+__all__ = [
+    "Parser",
+    "check_output",
+    "format_user_error",
+    "nonnegative_float",
+    "positive_float",
+    "positive_int",
+    "read_input",
+    "replaced_note",
+    "unit_interval",
+]
+
+#: input formats of :func:`phjax.io.read_trajectory` (``--format`` choices)
+INPUT_FORMATS = ("auto", "tum", "euroc", "csv", "corbillon", "hachaj")
+#: output formats of :func:`phjax.io.write_trajectory` (``--out-format`` choices)
+OUTPUT_FORMATS = ("auto", "tum", "csv", "euroc")
+
+
+class Parser(argparse.ArgumentParser):
+    """``argparse.ArgumentParser`` whose usage errors are one line (exit status 2):
+    ``phjax smooth: error: argument --rate: ... (see 'phjax smooth --help')``."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+def _number(text: str, kind=float):
+    try:
+        return kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0 (rates, durations)."""
+    x = _number(text)
+    if not (math.isfinite(x) and x > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}")
+    return x
+
+
+def nonnegative_float(text: str) -> float:
+    """argparse type: a finite number >= 0 (noise levels)."""
+    x = _number(text)
+    if not (math.isfinite(x) and x >= 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text!r}")
+    return x
+
+
+def unit_interval(text: str) -> float:
+    """argparse type: a fraction in ``[0, 1)`` (dropout)."""
+    x = _number(text)
+    if not 0 <= x < 1:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {text!r}")
+    return x
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    n = _number(text, int)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return n
+
+
+def format_user_error(err: BaseException) -> str:
+    """The one-line message of a user error (``OSError``: ``FILE: reason``)."""
+    if isinstance(err, OSError) and err.filename is not None and err.strerror:
+        return f"{os.fspath(err.filename)}: {err.strerror}"
+    text = str(err) or type(err).__name__
+    return " ".join(text.split())  # one line, whatever the message held
+
+
+def read_input(path, format: str = "auto", *, min_poses: int = 2):
+    """Read a trajectory file through :func:`phjax.io.read_trajectory` for a command.
+
+    Arguments:
+        path: the file named on the command line.
+        format: ``"auto"`` or a :mod:`phjax.io` format name.
+        min_poses: the least number of samples with a valid position or quaternion (lost
+            frames do not count).
+
+    Returns:
+        The :class:`~phjax.io.Trajectory`.
+
+    Raises:
+        FileNotFoundError, IsADirectoryError: no such file / a folder.
+        phjax.io.TrajectoryFormatError: empty, undetectable, malformed or too short.
+    """
+    import numpy as np
+
+    from ..io import TrajectoryFormatError, read_trajectory
+
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(2, "No such file or directory", str(path))
+    if p.is_dir():
+        raise IsADirectoryError(21, "Is a directory (expected a trajectory file)", str(path))
+    traj = read_trajectory(p, format=format)
+    valid = np.isfinite(traj.quaternions).all(-1) | np.isfinite(traj.positions).all(-1)
+    n = int(np.count_nonzero(valid))
+    if n < min_poses:
+        lost = traj.num_samples - n
+        raise TrajectoryFormatError(
+            f"{os.fspath(path)}: {n} pose(s)" + (f" ({lost} lost frame(s))" if lost else "")
+            + f"; at least {min_poses} are needed", path=path)
+    return traj
+
+
+def check_output(path, what: str = "output") -> Path:
+    """Fail early (before any computation) when ``path`` cannot be written: its folder is
+    missing or it is a folder."""
+    p = Path(path)
+    if p.is_dir():
+        raise IsADirectoryError(21, f"Is a directory (expected an {what} file name)", str(path))
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise FileNotFoundError(2, f"No such folder for the {what} file", str(parent))
+    return p
+
+
+def replaced_note(path) -> str:
+    """``" (replaced the existing file)"`` when ``path`` exists, else ``""``: the commands
+    overwrite their outputs and say so on the line that names the written file."""
+    return " (replaced the existing file)" if Path(path).is_file() else ""

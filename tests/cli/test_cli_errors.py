@@ -1,0 +1,149 @@
+"""The CLI's one error path: every bad input of issue 18 (missing / folder / empty / malformed /
+too short / binary / undetectable files, rates <= 0 or non-finite, unknown formats, unusable
+output names) ends with exit status 2 and ONE line on stderr naming the file (and the line), no
+traceback, no output file -- for every command that reads a trajectory. Called in-process
+(``main([...])``), nothing is computed, so the file runs in seconds."""
+
+from __future__ import annotations
+
+import pytest
+
+from phjax.cli import main
+
+TUM_ROW = "1.0 0 0 0 0 0 0 1\n"
+
+#: (name, file content or None for "no such file", expected message part); "DIR": a folder
+BAD_FILES = [
+    ("missing", None, "No such file or directory"),
+    ("folder", "DIR", "Is a directory"),
+    ("empty", "", "empty file"),
+    ("blank", "\n\n   \n", "empty file"),
+    ("malformed", TUM_ROW + "2.0 0 0 0 0 0 1\n", "line 2: expected 8 columns"),
+    ("non-numeric", TUM_ROW + "2.0 0 0 x 0 0 0 1\n", "line 2: non-numeric value 'x'"),
+    ("one pose", TUM_ROW, "1 pose(s); at least 2 are needed"),
+    ("only lost frames", "1 nan nan nan nan nan nan nan\n2 nan nan nan nan nan nan nan\n",
+     "0 pose(s) (2 lost frame(s)); at least 2"),
+    ("binary", b"\x89PNG\r\n\x1a\n\xff\xfe\x00", "not a UTF-8 text file"),
+    ("undetectable", "1 2 3\n", "cannot detect the trajectory format"),
+]
+
+#: commands reading one trajectory file FILE (OUT: an output path in the temporary folder)
+READERS = {
+    "smooth": ["smooth", "FILE", "-o", "OUT.txt"],
+    "evaluate": ["evaluate", "FILE", "--plot", "OUT.png", "--no-progress"],
+    "demo": ["demo", "FILE", "--plot", "OUT.png", "--no-progress"],
+    "demo-curve": ["demo-curve", "FILE"],
+    "tune": ["tune", "FILE", "--lambda", "1", "-o", "OUT.json"],
+}
+
+
+def _run(capsys, argv):
+    try:
+        rc = main(argv)
+    except SystemExit as stop:  # not expected (main returns), but a usage error may exit
+        rc = stop.code
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def _assert_one_line_error(rc, out, err, *parts):
+    assert rc == 2, (rc, out, err)
+    lines = err.strip("\n").split("\n")
+    assert len(lines) == 1, err
+    assert lines[0].startswith("phjax") and ": error: " in lines[0], err
+    assert "Traceback" not in out + err
+    for part in parts:
+        assert part in lines[0], (part, err)
+
+
+def _materialise(tmp_path, argv, content):
+    path = tmp_path / "input.txt"
+    if content == "DIR":
+        path = tmp_path / "a_folder"
+        path.mkdir()
+    elif isinstance(content, bytes):
+        path.write_bytes(content)
+    elif content is not None:
+        path.write_text(content)
+    out = tmp_path / "result"
+    return [str(path) if a == "FILE" else a.replace("OUT", str(out)) for a in argv], path, out
+
+
+@pytest.mark.parametrize("command", sorted(READERS))
+@pytest.mark.parametrize("name, content, message", BAD_FILES, ids=[b[0] for b in BAD_FILES])
+def test_bad_input_file_gives_one_line_and_status_2(tmp_path, capsys, command, name, content,
+                                                    message):
+    argv, path, out = _materialise(tmp_path, READERS[command], content)
+    rc, stdout, err = _run(capsys, argv)
+    _assert_one_line_error(rc, stdout, err, str(path), message, f"phjax {command}: error:")
+    assert not any(out.parent.glob(out.name + "*")), "no output for bad input"
+
+
+BAD_ARGUMENTS = [
+    # (argv with FILE = a valid two-pose TUM file, expected message part)
+    (["smooth", "FILE", "-o", "OUT.txt", "--rate", "0"], "argument --rate: must be a positive"),
+    (["smooth", "FILE", "-o", "OUT.txt", "--rate", "-5"], "argument --rate: must be a positive"),
+    (["smooth", "FILE", "-o", "OUT.txt", "--rate", "nan"], "argument --rate: must be a positive"),
+    (["smooth", "FILE", "-o", "OUT.txt", "--rate", "inf"], "argument --rate: must be a positive"),
+    (["smooth", "FILE", "-o", "OUT.txt", "--rate", "fast"], "argument --rate: not a number"),
+    (["demo", "--rate", "0"], "argument --rate: must be a positive"),
+    (["demo", "--camera-rate", "-30"], "argument --camera-rate: must be a positive"),
+    (["demo", "--duration", "0"], "argument --duration: must be a positive"),
+    (["demo", "--dropout", "1"], "argument --dropout: must be in [0, 1)"),
+    (["evaluate", "FILE", "--rate", "-1"], "argument --rate: must be a positive"),
+    (["tune", "FILE", "--lambda", "1", "-o", "OUT.json", "--rate", "0"], "argument --rate"),
+    (["track-rgbd", "synthetic:2", "-o", "OUT.tum", "--rate", "0"], "argument --rate"),
+    (["demo-curve", "FILE", "--stride", "0"], "argument --stride: must be an integer >= 1"),
+    (["smooth", "FILE", "-o", "OUT.txt", "--format", "kitti"], "argument --format: invalid choice"),
+    (["smooth", "FILE", "-o", "OUT.txt", "--out-format", "kitti"], "argument --out-format"),
+    (["evaluate", "FILE", "--format", "kitti"], "argument --format: invalid choice"),
+    (["demo-curve", "FILE", "--format", "kitti"], "argument --format: invalid choice"),
+    (["smooth", "FILE", "-o", "OUT.xyz"], "cannot choose a format from the extension '.xyz'"),
+    (["smooth", "FILE", "-o", "NOFOLDER/o.txt"], "No such folder for the output file"),
+    (["evaluate", "FILE", "--plot", "NOFOLDER/p.png"], "No such folder for the plot file"),
+    (["smooth", "FILE", "-o", "OUT.txt", "--config", "NOFOLDER/c.json"], "c.json"),
+    (["track-rgbd", "NOFOLDER", "-o", "OUT.tum"], "RGB-D source not found"),
+    (["smooth", "FILE"], "the following arguments are required: -o/--output"),
+    ([], "the following arguments are required: command"),
+    (["frobnicate"], "invalid choice: 'frobnicate'"),
+]
+
+
+@pytest.mark.parametrize("argv, message", BAD_ARGUMENTS, ids=lambda x: " ".join(x)
+                         if isinstance(x, list) else None)
+def test_bad_arguments_give_one_line_and_status_2(tmp_path, capsys, argv, message):
+    good = tmp_path / "good.txt"
+    good.write_text(TUM_ROW + "2.0 0 0 0 0 0 0 1\n")
+    out = tmp_path / "result"
+    argv = [a.replace("FILE", str(good)).replace("OUT", str(out))
+            .replace("NOFOLDER", str(tmp_path / "no_such_folder")) for a in argv]
+    rc, stdout, err = _run(capsys, argv)
+    _assert_one_line_error(rc, stdout, err, message)
+    assert not any(tmp_path.glob("result*"))
+
+
+def test_demo_curve_reads_the_named_file_without_synthetic_fallback(tmp_path, capsys):
+    rc, out, err = _run(capsys, ["demo-curve", str(tmp_path / "nope.txt")])
+    _assert_one_line_error(rc, out, err, "nope.txt: No such file or directory")
+    assert "synthetic" not in out
+
+
+@pytest.mark.parametrize("command, outputs", [
+    ("demo", ["phjax_evaluation.png", "phjax_evaluation.tum", "replaced"]),
+    ("evaluate", ["phjax_evaluation.png", "replaced"]),
+    ("smooth", ["--output", "replaced", "lost frame"]),
+    ("tune", ["JSON", "replaced"]),
+    ("track-rgbd", ["--output", "--raw", "replaced"]),
+    ("demo-curve", ["Writes no file"]),
+])
+def test_help_names_every_output_file(capsys, command, outputs):
+    assert main([command, "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for part in outputs:
+        assert part in text, (command, part)
+
+
+def test_top_level_help_documents_the_error_path(capsys):
+    assert main(["--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "exit status 2" in text and "error" in text
