@@ -51,7 +51,7 @@ def _rewrite_links(text: str, source: str, page: str) -> str:
         return f"{bang}[{label}]({rel}{'#' + anchor if anchor else ''})"
 
     # leave fenced code blocks alone
-    parts = re.split(r"(^(?:```|~~~).*?^(?:```|~~~)[^\n]*$)", text, flags=re.M | re.S)
+    parts = re.split(r"(^(?:```|~~~).*?^(?:```|~~~)[^\n]*$)", text, flags=re.MULTILINE | re.DOTALL)
     return "".join(p if i % 2 else _LINK.sub(fix, p) for i, p in enumerate(parts))
 
 

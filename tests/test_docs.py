@@ -1,0 +1,73 @@
+"""The documentation: links between the Markdown files resolve, and the mkdocs site (API pages
+from the docstrings, guide pages) builds with ``mkdocs build --strict``."""
+
+import importlib
+import importlib.util
+import os
+import re
+import subprocess
+import sys
+
+import pytest
+from conftest import REPO
+
+_LINK = re.compile(r"!?\[[^\]\n]*\]\(([^)\s]+)\)")
+_DOCS = ["README.md", "CONTRIBUTING.md", "docs/results.md", "benchmarks/README.md",
+         "experiments/README.md"]
+
+
+def _load_hooks():
+    spec = importlib.util.spec_from_file_location("phjax_docs_hooks", REPO / "docs" / "hooks.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize("name", _DOCS)
+def test_relative_links_resolve(name):
+    """Every relative link of the repository's Markdown points at an existing file (on GitHub)."""
+    path = REPO / name
+    text = re.sub(r"^```.*?^```", "", path.read_text(encoding="utf-8"), flags=re.MULTILINE | re.DOTALL)
+    targets = [t for t in _LINK.findall(text) if not re.match(r"^([a-z]+:|#)", t)]
+    missing = [t for t in targets if not (path.parent / t.split("#")[0]).exists()]
+    assert not missing, f"{name}: broken links {missing}"
+
+
+def test_hook_rewrites_links_for_the_site():
+    hooks = _load_hooks()
+    text = ("[r](docs/results.md#tuning) ![f](docs/fig1.png) [c](CONTRIBUTING.md) "
+            "[b](benchmarks/README.md) [s](experiments/fig1.py) [w](https://x.org/a.md)\n"
+            "```python\nx = [1](2)\n```\n")
+    out = hooks._rewrite_links(text, "README.md", "index.md")
+    assert "[r](results.md#tuning)" in out and "![f](fig1.png)" in out
+    assert "[c](contributing.md)" in out and "[b](benchmarks.md)" in out
+    assert " s " in out and "[w](https://x.org/a.md)" in out  # not on the site: plain text
+    assert "x = [1](2)" in out  # code untouched
+    # from a page under docs/, links written relative to docs/
+    assert hooks._rewrite_links("[e](../experiments/README.md)", "docs/results.md",
+                                "results.md") == "[e](experiments.md)"
+
+
+def test_mkdocs_build_strict(tmp_path):
+    for mod in ("mkdocs", "material", "mkdocstrings_handlers.python"):
+        try:
+            importlib.import_module(mod)
+        except ImportError:
+            pytest.skip(f"{mod} is not installed (pip install -e '.[docs]')")
+    site = tmp_path / "site"
+    env = dict(os.environ, NO_MKDOCS_2_WARNING="1")
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    res = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-f",
+                          str(REPO / "mkdocs.yml"), "-d", str(site)], cwd=REPO, env=env,
+                         capture_output=True, text=True, timeout=300, check=False)
+    assert res.returncode == 0, res.stderr[-5000:]
+    # one API page per subpackage, generated from the docstrings
+    for sub, name in [("curves", "hermite_quintic"), ("tracking", "TrackerStream"),
+                      ("vision", "HeadPoseEstimator"), ("motion", "synthetic_head_motion"),
+                      ("evaluation", "evaluate_recording"), ("io", "read_trajectory"),
+                      ("quaternion", "quat_slerp")]:
+        page = (site / "api" / sub / "index.html").read_text(encoding="utf-8")
+        assert f'id="phjax.{sub}.{name}"' in page, (sub, name)
+        assert ":class:`" not in page and ":func:`" not in page  # Sphinx roles shown as code
+    index = (site / "index.html").read_text(encoding="utf-8")
+    assert "Quickstart" in index and 'href="results/' in index  # the README, links rewritten
