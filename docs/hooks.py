@@ -1,6 +1,8 @@
 """mkdocs hook: include repository Markdown files as site pages and keep their links valid.
 
-A page whose Markdown contains ``<!-- include: PATH -->`` (``PATH`` relative to the repository
+A page whose Markdown contains ``<!-- notebook: PATH.ipynb -->`` gets the executed notebook
+(code, printed output, figures) converted to Markdown in its place. A page whose Markdown
+contains ``<!-- include: PATH -->`` (``PATH`` relative to the repository
 root) gets that file's text in its place. Relative links in every page are then resolved
 against the file they were written in (the included file, or the page's own file under
 ``docs/``): links to files that are site pages (``docs/...`` or one of :data:`PAGES`) are
@@ -25,7 +27,12 @@ PAGES = {
     "experiments/README.md": "experiments.md",
 }
 
+# executed notebooks shown as pages (docs/notebooks/NAME.md holds the directive)
+PAGES.update({f"notebooks/{p.stem}.ipynb": f"notebooks/{p.stem}.md"
+              for p in (ROOT / DOCS / "notebooks").glob("*.md") if p.stem != "index"})
+
 _INCLUDE = re.compile(r"<!--\s*include:\s*(\S+)\s*-->")
+_NOTEBOOK = re.compile(r"<!--\s*notebook:\s*(\S+)\s*-->")
 _LINK = re.compile(r"(!?)\[([^\]\n]*)\]\(([^)\s]+)\)")
 
 
@@ -55,8 +62,28 @@ def _rewrite_links(text: str, source: str, page: str) -> str:
     return "".join(p if i % 2 else _LINK.sub(fix, p) for i, p in enumerate(parts))
 
 
+def _notebook_markdown(path: str) -> str:
+    """An executed ``.ipynb`` as Markdown (nbconvert), its figures inlined as data URIs."""
+    import base64
+
+    import nbformat
+    from nbconvert import MarkdownExporter
+
+    nb = nbformat.read(ROOT / path, as_version=4)
+    nb.metadata.setdefault("language_info", {"name": "python"})  # highlight the code cells
+    body, resources = MarkdownExporter().from_notebook_node(nb)
+    for name, data in resources.get("outputs", {}).items():
+        mime = "image/svg+xml" if name.endswith(".svg") else f"image/{name.rsplit('.', 1)[-1]}"
+        uri = f"data:{mime};base64,{base64.b64encode(data).decode()}"
+        body = body.replace(f"]({name})", f"]({uri})")
+    return body
+
+
 def on_page_markdown(markdown: str, page, config, files) -> str:
     page_path = page.file.src_uri  # e.g. "index.md", "api/curves.md"
+    nb = _NOTEBOOK.search(markdown)
+    if nb is not None:
+        markdown = markdown[: nb.start()] + _notebook_markdown(nb.group(1)) + markdown[nb.end():]
     m = _INCLUDE.search(markdown)
     if m is None:
         return _rewrite_links(markdown, f"{DOCS}/{page_path}", page_path)

@@ -69,5 +69,28 @@ def test_mkdocs_build_strict(tmp_path):
         page = (site / "api" / sub / "index.html").read_text(encoding="utf-8")
         assert f'id="phjax.{sub}.{name}"' in page, (sub, name)
         assert ":class:`" not in page and ":func:`" not in page  # Sphinx roles shown as code
+    # the executed notebooks are pages with their figures
+    for nb in sorted((REPO / "notebooks").glob("*.ipynb")):
+        page = (site / "notebooks" / nb.stem / "index.html").read_text(encoding="utf-8")
+        assert 'src="data:image/png;base64,' in page, nb.name
     index = (site / "index.html").read_text(encoding="utf-8")
     assert "Quickstart" in index and 'href="results/' in index  # the README, links rewritten
+
+
+def test_notebooks_are_paired_and_executed():
+    """Every jupytext script in notebooks/ has an executed .ipynb beside it with the same code."""
+    nbformat = pytest.importorskip("nbformat")
+    jupytext = pytest.importorskip("jupytext")
+    scripts = sorted((REPO / "notebooks").glob("*.py"))
+    assert scripts
+    for script in scripts:
+        ipynb = script.with_suffix(".ipynb")
+        assert ipynb.exists(), f"{ipynb.name} missing: jupytext --sync {script.name}, then execute"
+        executed = nbformat.read(ipynb, as_version=4)
+        paired = jupytext.read(script)
+        code = [c.source for c in executed.cells if c.cell_type == "code"]
+        assert code == [c.source for c in paired.cells if c.cell_type == "code"], (
+            f"{ipynb.name} is out of date with {script.name}")
+        assert all(c.execution_count for c in executed.cells if c.cell_type == "code"), ipynb.name
+        assert not any(o.output_type == "error" for c in executed.cells
+                       if c.cell_type == "code" for o in c.outputs), ipynb.name
