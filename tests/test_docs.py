@@ -94,3 +94,17 @@ def test_notebooks_are_paired_and_executed():
         assert all(c.execution_count for c in executed.cells if c.cell_type == "code"), ipynb.name
         assert not any(o.output_type == "error" for c in executed.cells
                        if c.cell_type == "code" for o in c.outputs), ipynb.name
+
+
+def test_docstring_rst_rewrites():
+    """The API pages show Sphinx roles as code and RST simple tables as lists."""
+    pytest.importorskip("griffe")
+    spec = importlib.util.spec_from_file_location("phjax_griffe_rst",
+                                                  REPO / "docs" / "griffe_rst_roles.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod._ROLE.sub(mod._plain, "see :func:`~phjax.io.read_tum` and :class:`Trajectory`") == (
+        "see `read_tum` and `Trajectory`")
+    table = "==  ====\n``a``  one\n       more\n``b``  two\n==  ====\nafter"
+    table = table.replace("==  ====", "=====  ====")
+    assert mod._simple_tables(table) == "- ``a``: one more\n- ``b``: two\nafter"
