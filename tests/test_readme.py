@@ -21,14 +21,15 @@ def readme_python_blocks() -> list[tuple[int, str]]:
 
 
 _RUNNER = textwrap.dedent(
-    """
+    r"""
     import json, sys, traceback
-    blocks = json.load(open(sys.argv[1]))
+    blocks, readme = json.load(open(sys.argv[1])), sys.argv[2]
     namespace = {"__name__": "__main__"}
     for line, source in blocks:
         print(f"--- README.md block at line {line}", flush=True)
         try:
-            exec(compile(source, f"README.md:{line}", "exec"), namespace)
+            # padded so that tracebacks give the README's own line numbers
+            exec(compile("\n" * (line - 1) + source, readme, "exec"), namespace)
         except BaseException:
             traceback.print_exc()
             print(f"FAILED: README.md block at line {line}", file=sys.stderr)
@@ -67,8 +68,9 @@ def test_readme_python_blocks_run_in_order(tmp_path):
     env.setdefault("PHJAX_SHARED_DATA", str(REPO.parent / "shared" / "data"))
     env["MPLBACKEND"] = "Agg"
     env.pop("JAX_ENABLE_X64", None)
-    res = subprocess.run([sys.executable, str(runner), str(blocks)], cwd=work, env=env,
-                         capture_output=True, text=True, timeout=1200, check=False)
+    res = subprocess.run([sys.executable, str(runner), str(blocks), str(REPO / "README.md")],
+                         cwd=work, env=env, capture_output=True, text=True, timeout=1200,
+                         check=False)
     assert res.returncode == 0, (res.stdout[-3000:] + "\n" + res.stderr[-6000:])
     assert "all README blocks ran" in res.stdout
     # the "smooth a recording" snippet wrote its files where the user runs it
