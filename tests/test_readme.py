@@ -52,7 +52,9 @@ def test_readme_has_python_blocks_and_setup_commands():
 
 @pytest.mark.slow
 def test_readme_python_blocks_run_in_order(tmp_path):
-    # the RGB-D snippet seeds the face-detector cache from ../shared/data
+    # the RGB-D snippet needs the vision extra and seeds the face-detector cache from
+    # ../shared/data
+    pytest.importorskip("cv2", reason="the RGB-D snippet needs the vision extra (opencv)")
     shared_path("yunet_face_detection")
     import json
 
