@@ -10,6 +10,8 @@
 
 # %%
 import os
+import sys
+import tempfile
 
 import jax
 import jax.numpy as jnp
@@ -66,6 +68,9 @@ assert default <= 1.5 * energy.min()
 
 # %%
 out = os.environ.get("PHJAX_NOTEBOOK_FIGURES")
+in_jupyter = "ipykernel" in sys.modules  # executed as a notebook: figures shown inline
+if in_jupyter and not out:
+    out = tempfile.mkdtemp()
 if out:
     import matplotlib
 
@@ -84,3 +89,8 @@ if out:
     ax[1].set_ylabel("phi2")
     os.makedirs(out, exist_ok=True)
     fig.savefig(os.path.join(out, "ph_anatomy.png"), dpi=100)
+    if in_jupyter:
+        from IPython.display import Image, display
+
+        for name in ("ph_anatomy.png",):
+            display(Image(os.path.join(out, name)))

@@ -11,6 +11,8 @@
 
 # %%
 import os
+import sys
+import tempfile
 import warnings
 
 import jax
@@ -88,6 +90,9 @@ assert ph["velocity_jump"] < kf["velocity_jump"]  # and C1 across camera frames
 
 # %%
 out = os.environ.get("PHJAX_NOTEBOOK_FIGURES")
+in_jupyter = "ipykernel" in sys.modules  # executed as a notebook: figures shown inline
+if in_jupyter and not out:
+    out = tempfile.mkdtemp()
 if out:
     import matplotlib
 
@@ -117,3 +122,8 @@ if out:
     fig.savefig(os.path.join(out, "02_between_frames.png"), dpi=110)
     plt.close(fig)
     print("figures written to", out)
+    if in_jupyter:
+        from IPython.display import Image, display
+
+        for name in ("02_evaluation.png", "02_between_frames.png",):
+            display(Image(os.path.join(out, name)))

@@ -13,6 +13,8 @@
 
 # %%
 import os
+import sys
+import tempfile
 import time
 
 import jax
@@ -91,6 +93,9 @@ print(f"notebook run time {time.perf_counter() - t_start:.0f} s")
 
 # %%
 out = os.environ.get("PHJAX_NOTEBOOK_FIGURES")
+in_jupyter = "ipykernel" in sys.modules  # executed as a notebook: figures shown inline
+if in_jupyter and not out:
+    out = tempfile.mkdtemp()
 if out:
     import matplotlib
 
@@ -111,3 +116,8 @@ if out:
         a.legend()
     os.makedirs(out, exist_ok=True)
     fig.savefig(os.path.join(out, "tuning_frontier.png"), dpi=100)
+    if in_jupyter:
+        from IPython.display import Image, display
+
+        for name in ("tuning_frontier.png",):
+            display(Image(os.path.join(out, name)))

@@ -741,8 +741,10 @@ class SyntheticRGBDSequence:
         wall: background plane ``(n, d)``, ``n . X = d``, camera frame.
 
     Attributes:
-        timestamps ``(n,)``, head_positions ``(n, 3)``, head_quaternions ``(n, 4)``: the
-        ground-truth camera-frame poses; intrinsics; model (:class:`HeadModel`).
+        timestamps, head_positions, head_quaternions: the ground-truth camera-frame poses,
+            ``(n,)``, ``(n, 3)``, ``(n, 4)``.
+        intrinsics: the camera intrinsics.
+        model: the :class:`HeadModel`.
     """
 
     def __init__(
