@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import shared_path
+from conftest import shared_path, yunet_models
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -136,7 +136,7 @@ def detectors(tmp_path_factory):
     cache = tmp_path_factory.mktemp("models")
     mp = pytest.MonkeyPatch()
     mp.setenv("TORCH_HOME", str(tmp_path_factory.mktemp("torch")))
-    F.seed_model_cache(shared_path("yunet_face_detection"), cache)
+    F.seed_model_cache(yunet_models(), cache)
     dets = {b: F.FaceDetector(b, model_dir=cache) for b in F.BACKENDS}
     yield dets
     mp.undo()
@@ -411,7 +411,7 @@ def test_cli_track_rgbd(tmp_path, monkeypatch, capsys):
     from phjax.io import read_trajectory
 
     cache = tmp_path / "models"
-    F.seed_model_cache(shared_path("yunet_face_detection"), cache)
+    F.seed_model_cache(yunet_models(), cache)
     parser = argparse.ArgumentParser(prog="phjax")
     _rgbd.add_commands(parser.add_subparsers(dest="command", required=True))
     out, raw = tmp_path / "head.tum", tmp_path / "raw.tum"
