@@ -7,9 +7,8 @@ import subprocess
 import sys
 import textwrap
 
-import pytest
-
 import conftest
+import pytest
 from conftest import REPO
 
 
@@ -83,9 +82,9 @@ def test_switch_makes_a_real_data_test_fail_in_pytest(tmp_path):
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(test)]
     env = {"PATH": "", "PYTHONPATH": f"{REPO / 'tests'}:{REPO}",
            "PHJAX_SHARED_DATA": str(tmp_path / "missing"), "JAX_PLATFORMS": "cpu"}
-    skipped = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=tmp_path)
+    skipped = subprocess.run(cmd, check=False, env=env, capture_output=True, text=True, cwd=tmp_path)
     assert skipped.returncode == 0 and "1 skipped" in skipped.stdout, skipped.stdout
-    failed = subprocess.run(cmd, env=env | {conftest.REQUIRE_SHARED_DATA: "1"},
+    failed = subprocess.run(cmd, check=False, env=env | {conftest.REQUIRE_SHARED_DATA: "1"},
                             capture_output=True, text=True, cwd=tmp_path)
     assert failed.returncode == 1 and "1 failed" in failed.stdout, failed.stdout
     assert "PHJAX_REQUIRE_SHARED_DATA is set" in failed.stdout

@@ -131,9 +131,10 @@ def _session(work: Path, name: str, out: Path, sample: int | None, seed: int, su
     module = MODULES[name][0]
     db = WorkDB(str(out / f"{name}.sqlite"), WorkDB.Mode.create)
     init([Path(module)], db, {})
-    items = sorted(db.work_items, key=lambda w: (w.mutations[0].operator_name,
-                                                 w.mutations[0].occurrence))
-    key = lambda w: (w.mutations[0].operator_name, w.mutations[0].occurrence)  # noqa: E731
+    def key(w):
+        return (w.mutations[0].operator_name, w.mutations[0].occurrence)
+
+    items = sorted(db.work_items, key=key)
     if survivors_of is not None:
         chosen = [w for w in items if key(w) in survivors_of]
     elif sample is not None and sample < len(items):
