@@ -82,6 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sample", type=int, default=None, metavar="N",
                    help="mutants per module, drawn with --seed (default: all of them)")
     p.add_argument("--seed", type=int, default=0, help="seed of the sample (default 0)")
+    p.add_argument("--functions", nargs="+", default=None, metavar="NAME",
+                   help="only mutants inside these functions / classes (Cosmic Ray's "
+                        "definition name), e.g. _data_frame _make_frame")
     p.add_argument("-k", dest="keyword", default=None,
                    help="pytest -k expression narrowing the tests of every module")
     p.add_argument("--timeout", type=float, default=600.0,
@@ -121,7 +124,8 @@ def _test_command(tests, keyword: str | None) -> str:
     return cmd + (f" -k '{keyword}'" if keyword else "")
 
 
-def _session(work: Path, name: str, out: Path, sample: int | None, seed: int, survivors_of):
+def _session(work: Path, name: str, out: Path, sample: int | None, seed: int, survivors_of,
+             functions=None):
     """Cosmic Ray session of one module: every mutant enumerated, those not selected marked
     skipped. Returns the open database and the selected work items (stable order)."""
     from cosmic_ray.commands import init
@@ -135,6 +139,12 @@ def _session(work: Path, name: str, out: Path, sample: int | None, seed: int, su
         return (w.mutations[0].operator_name, w.mutations[0].occurrence)
 
     items = sorted(db.work_items, key=key)
+    if functions:
+        wanted = set(functions)
+        inside = [w for w in items if w.mutations[0].definition_name in wanted]
+        db.set_multiple_results([w.job_id for w in items if w not in inside],
+                                WorkResult(worker_outcome=WorkerOutcome.SKIPPED))
+        items = inside
     if survivors_of is not None:
         chosen = [w for w in items if key(w) in survivors_of]
     elif sample is not None and sample < len(items):
@@ -167,14 +177,15 @@ def run(args) -> dict:
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
     os.chdir(work)
     summary = {"tests_from": args.tests_from or "working tree", "seed": args.seed,
-               "sample": args.sample, "keyword": args.keyword,
+               "sample": args.sample, "keyword": args.keyword, "functions": args.functions,
                "rerun_survivors_of": str(args.rerun_survivors) if survivors is not None else None,
                "modules": {}}
     for name in modules:
         module, tests = MODULES[name]
         cmd = _test_command(tests, args.keyword)
         db, chosen, total = _session(work, name, out, args.sample, args.seed,
-                                     None if survivors is None else survivors.get(name, set()))
+                                     None if survivors is None else survivors.get(name, set()),
+                                     args.functions)
         print(f"== {name}: {len(chosen)} of {total} mutants; tests: {cmd}", flush=True)
         counts = {"killed": 0, "survived": 0, "timeout": 0, "incompetent": 0, "no_mutation": 0}
         surv = []
