@@ -27,12 +27,51 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("PHJAX_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
+#: environment switch (set by ``.ci/run``): missing shared data is an error, not a skip
+REQUIRE_SHARED_DATA = "PHJAX_REQUIRE_SHARED_DATA"
+
+
+def shared_data_required() -> bool:
+    """Whether ``$PHJAX_REQUIRE_SHARED_DATA`` is set to a true value (anything but ``""``/``0``)."""
+    return os.environ.get(REQUIRE_SHARED_DATA, "").strip().lower() not in ("", "0", "false", "no")
+
+
 def shared_path(*parts: str) -> Path:
-    """Path inside ``../shared/data``; skips the test (with the reason) when it is absent."""
+    """Path inside ``../shared/data`` (or ``$PHJAX_SHARED_DATA``).
+
+    When it is absent the test is skipped with the reason, or fails (an error in a fixture)
+    when ``$PHJAX_REQUIRE_SHARED_DATA=1``: CI sets that, so a missing data set cannot turn the
+    real-data tests into silent skips.
+    """
     p = SHARED_DATA.joinpath(*parts)
     if not p.exists():
-        pytest.skip(f"shared data not found: {p} (expected ../shared/data beside the repository)")
+        msg = f"shared data not found: {p} (expected ../shared/data beside the repository)"
+        if shared_data_required():
+            pytest.fail(f"{msg}; {REQUIRE_SHARED_DATA} is set, so this is an error", pytrace=False)
+        pytest.skip(msg)
     return p
+
+
+YUNET_ONNX = "face_detection_yunet_2023mar.onnx"
+#: the files of :data:`phjax.vision.face_detection.MODELS` (ONNX for OpenCV, weights for kornia)
+YUNET_FILES = (YUNET_ONNX, "yunet_final.pth")
+
+
+def yunet_models() -> Path:
+    """A folder holding the YuNet model files (for tests that need the detector, not the data).
+
+    ``../shared/data/yunet_face_detection`` when present, else the user's model cache
+    (``$PHJAX_MODEL_DIR`` or ``~/.cache/phjax/models``) when it holds both model files; otherwise
+    the shared folder's rule applies (skip, or error with ``$PHJAX_REQUIRE_SHARED_DATA``).
+    The files are checked against their SHA-256 where they are seeded into a test's cache.
+    """
+    shared = SHARED_DATA / "yunet_face_detection"
+    if shared.is_dir():
+        return shared
+    cache = Path(os.environ.get("PHJAX_MODEL_DIR") or Path.home() / ".cache" / "phjax" / "models")
+    if all((cache / name).is_file() for name in YUNET_FILES):
+        return cache
+    return shared_path("yunet_face_detection")
 
 
 @pytest.fixture

@@ -697,6 +697,9 @@ def test_gating_rejects_outliers():
 
 
 def test_filter_equals_python_loop_and_compiles_once():
+    """``kalman_filter`` (one scan) equals a loop of ``kalman_step``: both run the same step, so
+    this checks the scan and its static shapes; the step's maths is tested independently
+    against filterpy, Van Loan, finite differences and a 1-D linear filter (above)."""
     rng = np.random.default_rng(10)
     t, _, _, _, p, q = random_walk_pose(rng)
     p[3] = np.nan

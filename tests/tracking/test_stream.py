@@ -43,7 +43,13 @@ def _comparable(state, exact: bool):
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
 @pytest.mark.parametrize("model", ["cv", "ca"])
 def test_stream_equals_pure_functions(meas, dtype, model):
-    """Every update and the samples between frames equal tracker_update / tracker_sample."""
+    """Every update and the samples between frames equal tracker_update / tracker_sample.
+
+    The packed stream and ``tracker_update`` share the maths (``_update``, ``_eval_render``):
+    this checks the packing (layouts, dtypes, no recompilation), not the tracker; the maths is
+    tested independently in tests/tracking/test_tracker.py (finite-difference continuity of the
+    world-frame velocities, segment starts, accuracy against ground truth and the Kalman
+    baseline) and tests/tracking/test_kalman.py (filterpy)."""
     mt, mp, mq = meas
     cfg = pj.TrackerConfig(kalman=pj.KalmanConfig(model=model), horizon=0.035)
     s = pj.TrackerStream(cfg, dtype=dtype)
@@ -109,7 +115,8 @@ def test_layout_round_trips_integer_and_bool_leaves():
 
 def test_stream_is_the_track_scan(meas):
     """The stream sampled at render times equals ``phjax.track`` (causal: the last update at or
-    before each render time)."""
+    before each render time). Same maths on both sides (see
+    ``test_stream_equals_pure_functions`` for where the maths itself is tested)."""
     mt, mp, mq = meas
     r = np.arange(0.0, mt[-1], 1 / 120)
     P_ref, Q_ref = (np.asarray(x) for x in pj.track(mt, mp, mq, r, dtype=jnp.float64))

@@ -6,7 +6,7 @@ import hashlib
 
 import numpy as np
 import pytest
-from conftest import shared_path
+from conftest import shared_path, yunet_models
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -19,7 +19,7 @@ FRAMES = ("00054", "00427", "unknown")
 @pytest.fixture
 def model_cache(tmp_path, monkeypatch):
     """A model cache in tmp_path seeded from the shared folder; torch hub also in tmp_path."""
-    src = shared_path("yunet_face_detection")
+    src = yunet_models()
     cache = tmp_path / "models"
     monkeypatch.setenv("PHJAX_MODEL_DIR", str(cache))
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
@@ -36,7 +36,7 @@ def biwi_images():
 @pytest.fixture(scope="module")
 def detectors(tmp_path_factory):
     """Both backends, loaded once for the module from a seeded cache."""
-    src = shared_path("yunet_face_detection")
+    src = yunet_models()
     cache = tmp_path_factory.mktemp("models")
     mp = pytest.MonkeyPatch()
     mp.setenv("TORCH_HOME", str(tmp_path_factory.mktemp("torch")))
@@ -55,7 +55,7 @@ def test_seed_model_cache(model_cache):
         assert p.parent == model_cache
         assert hashlib.sha256(p.read_bytes()).hexdigest() == m.sha256
     # idempotent; unrelated files in the source folder are ignored
-    again = F.seed_model_cache(shared_path("yunet_face_detection"))
+    again = F.seed_model_cache(yunet_models())
     assert sorted(p.name for p in again) == names
 
 

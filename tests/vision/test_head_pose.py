@@ -6,16 +6,16 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import shared_path
+from conftest import shared_path, yunet_models
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from phjax._np_quat import np_qconj, np_qmul, np_rotvec
+from phjax.io import biwi_pose_to_quaternion, read_biwi_pose
 from phjax.vision import face_detection as F
 from phjax.vision import features as Fe
 from phjax.vision import head_pose as H
 from phjax.vision import rgbd_io as R
-from phjax._np_quat import np_qconj, np_qmul, np_rotvec
-from phjax.io import biwi_pose_to_quaternion, read_biwi_pose
 
 BIWI = ("biwi_kinect_head_pose_samples",)
 NAMES = ("00054", "00427", "unknown")
@@ -136,7 +136,7 @@ def detectors(tmp_path_factory):
     cache = tmp_path_factory.mktemp("models")
     mp = pytest.MonkeyPatch()
     mp.setenv("TORCH_HOME", str(tmp_path_factory.mktemp("torch")))
-    F.seed_model_cache(shared_path("yunet_face_detection"), cache)
+    F.seed_model_cache(yunet_models(), cache)
     dets = {b: F.FaceDetector(b, model_dir=cache) for b in F.BACKENDS}
     yield dets
     mp.undo()
@@ -165,35 +165,51 @@ def test_biwi_pose_convention(biwi):
     assert np.median(d_transposed) > 0.01
 
 
+#: Biwi acceptance, measured per backend over the six ordered pairs of different frames:
+#: largest rotation error (deg) and position error (m); the bounds are 1.5x these (kornia's
+#: 4.08 deg is the 62.5 deg turn 00054 -> 00427; its other pairs are within 1.61 deg).
+#: A bias of 1.5 deg / 8 mm in every estimated pose fails them.
+BIWI_MEASURED = {"opencv": (2.16, 0.00205), "kornia": (4.08, 0.00236)}
+
+
 @pytest.mark.parametrize("backend", F.BACKENDS)
 def test_biwi_relative_pose_acceptance(biwi, detectors, backend):
-    """Every ordered pair: reference = frame a with its ground-truth pose, estimate frame b."""
+    """Every ordered pair: reference = frame a with its ground-truth pose, estimate frame b
+    (the GT head centre of a carried by the estimated motion must land on b's centre); the
+    same frame again gives the reference pose back (measured: exactly)."""
     frames, gt = biwi
     cfg = H.HeadPoseConfig(backend=backend)
+    rot, pos = [], []
     for a in NAMES:
         for b in NAMES:
-            if a == b:
-                continue
             est = H.HeadPoseEstimator(frames[a].intrinsics, cfg, detector=detectors[backend],
                                       reference_pose=gt[a])
             r0 = est.process_frame(frames[a])
             assert r0.ok and r0.is_keyframe and r0.face_source == "detector"
             r = est.process_frame(frames[b])
             assert r.status == H.HeadPoseStatus.OK, (a, b, r)
-            true_angle = _angle_deg(gt[a][0], gt[b][0])
-            limit = 10.0 if true_angle > 50 else 5.0
-            assert _angle_deg(gt[b][0], r.quaternion) < limit, (a, b, r)
-            # the GT head centre of a carried by the estimated motion lands on b's centre
-            assert np.linalg.norm(r.position - gt[b][1]) < 0.02
             assert r.face is not None and r.face.landmarks.shape == (5, 2)
+            err = (_angle_deg(gt[b][0], r.quaternion), float(np.linalg.norm(r.position - gt[b][1])))
+            if a == b:  # identity: bounds far below any real error (measured 0)
+                assert err[0] < 1e-3 and err[1] < 1e-6, (a, err)
+            else:
+                rot.append(err[0])
+                pos.append(err[1])
+    print(f"{backend}: rotation error max {max(rot):.3f} deg, position error max "
+          f"{1000 * max(pos):.2f} mm")
+    rot_max, pos_max = BIWI_MEASURED[backend]
+    assert max(rot) < 1.5 * rot_max, rot
+    assert max(pos) < 1.5 * pos_max, pos
 
 
 def test_synthetic_sequence_end_to_end_accuracy(detectors):
     """Acceptance: the package's rendered RGB-D head (exact ground truth, 60 frames at 30 Hz)
-    through the front-end (OpenCV backend) and the causal 120 Hz stream: rotation RMSE <= 2 deg
-    and position RMSE <= 1 cm against the ground truth, per frame and rendered."""
+    through the front-end (OpenCV backend) and the causal 120 Hz stream against the ground
+    truth. The target is 2 deg / 1 cm; measured per frame 0.22 deg / 0.2 mm RMSE and rendered
+    0.28 deg / 0.4 mm, and the regression bounds are 1.5x those."""
     import phjax as pj
-    from phjax.evaluation.metrics import position_rmse, rotation_rmse_deg as rotation_rmse
+    from phjax.evaluation.metrics import position_rmse
+    from phjax.evaluation.metrics import rotation_rmse_deg as rotation_rmse
     from phjax.motion.resample import interpolate_poses
 
     seq = R.open_rgbd("synthetic:60:3")
@@ -207,15 +223,15 @@ def test_synthetic_sequence_end_to_end_accuracy(detectors):
     quat = np.array([r.quaternion for r in res])
     per_frame = (position_rmse(pos, gt.positions[:60]).value,
                  rotation_rmse(quat, gt.quaternions[:60]).value)
-    print("per frame: position RMSE %.4f m, rotation RMSE %.3f deg" % per_frame)
-    assert per_frame[0] < 0.01 and per_frame[1] < 2.0, per_frame
+    print("per frame: position RMSE {:.5f} m, rotation RMSE {:.3f} deg".format(*per_frame))
+    assert per_frame[0] < 1.5 * 0.0002 and per_frame[1] < 1.5 * 0.22, per_frame
     render = np.arange(times[0], times[-1], 1 / 120)
     P, Q = (np.asarray(x) for x in pj.track(times, pos, quat, render, dtype=np.float64))
     gp, gq = (np.asarray(x) for x in interpolate_poses(gt.times[:60], gt.positions[:60],
                                                        gt.quaternions[:60], render))
     stream = (position_rmse(P, gp).value, rotation_rmse(Q, gq).value)
-    print("120 Hz stream: position RMSE %.4f m, rotation RMSE %.3f deg" % stream)
-    assert stream[0] < 0.01 and stream[1] < 2.0, stream
+    print("120 Hz stream: position RMSE {:.5f} m, rotation RMSE {:.3f} deg".format(*stream))
+    assert stream[0] < 1.5 * 0.0004 and stream[1] < 1.5 * 0.28, stream
 
 
 def test_status_on_bad_frames_and_recovery(biwi, detectors):
@@ -261,8 +277,11 @@ def test_black_colour_with_depth_uses_tracking_or_depth(biwi, detectors):
     assert r0.ok and r0.face_source == "depth" and r0.face is None
     r1 = est.process(np.zeros_like(f.color), f.depth, 0.1)  # tracked box, ICP only
     assert r1.face_source == "tracked"
-    assert r1.ok and _angle_deg(r1.quaternion, gt["00054"][0]) < 1.0
-    np.testing.assert_allclose(r1.position, gt["00054"][1], atol=0.005)
+    # the same frame again: identity (measured exactly 0, was allowed 1 deg / 5 mm)
+    print("same frame twice, ICP only: {:.2e} deg, {:.2e} m".format(
+        _angle_deg(r1.quaternion, gt["00054"][0]), np.linalg.norm(r1.position - gt["00054"][1])))
+    assert r1.ok and _angle_deg(r1.quaternion, gt["00054"][0]) < 1e-3
+    np.testing.assert_allclose(r1.position, gt["00054"][1], atol=1e-6)
 
 
 def test_head_box_from_depth(biwi):
@@ -411,7 +430,7 @@ def test_cli_track_rgbd(tmp_path, monkeypatch, capsys):
     from phjax.io import read_trajectory
 
     cache = tmp_path / "models"
-    F.seed_model_cache(shared_path("yunet_face_detection"), cache)
+    F.seed_model_cache(yunet_models(), cache)
     parser = argparse.ArgumentParser(prog="phjax")
     _rgbd.add_commands(parser.add_subparsers(dest="command", required=True))
     out, raw = tmp_path / "head.tum", tmp_path / "raw.tum"

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import shared_path
+from conftest import YUNET_ONNX, yunet_models
 
 from phjax import synthetic_head_motion
 from phjax._np_quat import np_qconj, np_qmul, np_rotvec
@@ -311,7 +311,7 @@ def test_icp_between_frames_recovers_the_relative_head_pose(noisy, frames):
 # -------------------------------------------------------------------------------- YuNet
 def test_yunet_detects_the_synthetic_face(frames):
     cv2 = pytest.importorskip("cv2")
-    onnx = shared_path("yunet_face_detection", "face_detection_yunet_2023mar.onnx")
+    onnx = yunet_models() / YUNET_ONNX
     det = cv2.FaceDetectorYN.create(str(onnx), "", (640, 480), 0.5, 0.3, 10)
     for k in (0, 45):
         f = frames["noisy", k]
