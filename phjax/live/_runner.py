@@ -39,6 +39,7 @@ sample after :meth:`LiveTracker.center` becomes the origin: orientation ``q_c^-1
 from __future__ import annotations
 
 import math
+import os
 import queue
 import sys
 import threading
@@ -54,7 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._np_quat import np_qconj, np_qmul
-from ..tracking.kalman import KalmanConfig, kalman_predict, kalman_step, predict_pose
+from ..tracking.kalman import KalmanConfig, kalman_step, predict_pose
 from ..tracking.stream import TrackerStream, _Layout
 from ..tracking.tracker import TrackerConfig, tracker_update
 from ._clock import RealClock, VirtualClock
@@ -68,17 +69,19 @@ __all__ = ["LiveStream", "LiveTracker", "Sample", "live_tracker_config"]
 def _late_update(config: TrackerConfig, state, t_meas, t_now, position, quaternion):
     """Filter at the capture time ``t_meas``, render segment from ``t_now`` (module docs)."""
     k = config.kalman
-    was_init = state.filter.initialized
+    fresh = ~state.filter.initialized
     kf, info = kalman_step(k, state.filter, t_meas, position, quaternion)
     used = info.pos_used | info.rot_used
     t_now = jnp.maximum(jnp.asarray(t_now, kf.t.dtype), kf.t)
     p_now, q_now, _, _ = predict_pose(k, kf, t_now)
-    plain = tracker_update(config, state, t_meas, position, quaternion)
     seeded = eqx.tree_at(lambda s: s.filter, state, kf)
-    joined = tracker_update(config, seeded, t_now, p_now, q_now)
-    joined = eqx.tree_at(lambda s: s.filter, joined, kalman_predict(k, kf, t_now))
     choose = lambda c, a, b: jax.tree.map(lambda x, y: jnp.where(c, x, y), a, b)
-    return choose(~was_init, plain, choose(used, joined, seeded))
+    # first measurement: a plain update (nothing was rendered before, no jump to avoid);
+    # afterwards the zero-innovation update at t_now from the filter at t_meas
+    out = tracker_update(config, choose(fresh, state, seeded), jnp.where(fresh, t_meas, t_now),
+                         jnp.where(fresh, position, p_now), jnp.where(fresh, quaternion, q_now))
+    out = eqx.tree_at(lambda s: s.filter, out, choose(fresh, out.filter, kf))
+    return choose(fresh | used, out, seeded)
 
 
 _COMPILED_LATE: dict = {}
@@ -109,6 +112,7 @@ class LiveStream(TrackerStream):
         if dtype is None:
             dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
         super().__init__(config, t, dtype)
+        self._dtype = np.dtype(self._layout.dtype).type
         self._late = _compiled_late(self._config_layout, self._layout)
 
     def set_config(self, config: TrackerConfig) -> None:
@@ -124,8 +128,9 @@ class LiveStream(TrackerStream):
             t_now: current time (the new render segment starts here), s.
             position: ``(3,)`` m, NaN if missing; quaternion: ``(4,)`` ``wxyz``, NaN if missing.
         """
-        self._packed = self._late(self._cvec, self._packed, t_measured, t_now,
-                                  np.asarray(position), np.asarray(quaternion))
+        dt = self._dtype
+        self._packed = self._late(self._cvec, self._packed, dt(t_measured), dt(t_now),
+                                  np.asarray(position, dt), np.asarray(quaternion, dt))
 
 
 def live_tracker_config(depth_free: bool = False, base: TrackerConfig | None = None
@@ -206,6 +211,11 @@ class LiveTracker:
         switch_interval: Python's thread switch interval while running, s (default 0.5 ms:
             the render thread gets the GIL within that time of its deadline; restored at
             :meth:`stop`); ``None`` leaves it alone.
+        render_nice, capture_nice: niceness increments of the two threads (Linux, best
+            effort: raising the render thread's priority needs ``CAP_SYS_NICE`` and is skipped
+            without it; ``None``: unchanged). By default the render thread gets a little more
+            of a busy CPU than the capture thread's front-end.
+        linger: without ``duration``, keep rendering this long after the source ends, s.
 
     Use as a context manager (``start`` / ``stop``) and iterate :meth:`samples`, read
     :attr:`latest`, or pass a ``callback``::
@@ -221,7 +231,8 @@ class LiveTracker:
                  center: bool = False, config: TrackerConfig | None = None,
                  adaptive: bool = True, clock=None, callback: Callable[[Sample], None] | None
                  = None, model_dir=None, ipd: float | None = None, fov: float = 60.0,
-                 switch_interval: float | None = 5e-4, linger: float = 0.5):
+                 switch_interval: float | None = 5e-4, linger: float = 0.5,
+                 render_nice: int | None = -5, capture_nice: int | None = 5):
         if not (math.isfinite(rate) and rate > 0):
             raise ValueError(f"rate must be a positive number, got {rate}")
         if duration is not None and not duration > 0:
@@ -231,6 +242,7 @@ class LiveTracker:
         self.callback = callback
         self.adaptive = adaptive
         self.linger = float(linger)
+        self.render_nice, self.capture_nice = render_nice, capture_nice
         self.switch_interval = None if self.clock.virtual else switch_interval
         self._outputs: list[Output] = []
         self._log = None
@@ -373,6 +385,7 @@ class LiveTracker:
 
     # ------------------------------------------------------------------ capture thread
     def _capture_main(self) -> None:
+        _renice(self.capture_nice)
         try:
             self.source.run(self.clock, self.t0, self._stop, self._on_measurement)
         except BaseException as e:  # noqa: BLE001 - reported by run() / the CLI
@@ -414,6 +427,7 @@ class LiveTracker:
 
     # ------------------------------------------------------------------ render thread
     def _render_main(self) -> None:
+        _renice(self.render_nice)
         clock, period = self.clock, 1.0 / self.rate
         try:
             while not self._stop.is_set():
@@ -565,6 +579,17 @@ class LiveTracker:
                 f"{1e3 * abs(s['interval_p50'] - period):.2f} ms p99 "
                 f"{1e3 * abs(s['interval_p99'] - period):.2f} ms, missed "
                 f"{s['missed_deadlines']} | age p50 {1e3 * s['age_p50']:.0f} ms")
+
+
+def _renice(increment: int | None) -> None:
+    """Change the calling thread's nice value by ``increment`` (Linux; errors ignored)."""
+    if not increment or not hasattr(os, "setpriority") or not hasattr(threading, "get_native_id"):
+        return
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + increment)
+    except OSError:
+        pass
 
 
 def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:

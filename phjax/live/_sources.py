@@ -195,8 +195,10 @@ class RGBDReplaySource(Source):
         if self.estimator is None:
             self.estimator = _with_models(lambda: HeadPoseEstimator(
                 self.sequence.intrinsics, model_dir=self.model_dir))
-        # warm-up: compile the front-end (and the renderer of a synthetic sequence)
-        self.estimator.process_frame(self.sequence[0])
+        # warm-up: compile the front-end's stages (the first frame starts a reference, the
+        # next ones are aligned to it) and the renderer of a synthetic sequence
+        for i in range(min(3, len(self.sequence))):
+            self.estimator.process_frame(self.sequence[i])
         self.estimator.reset()
 
     def run(self, clock, t0, stop, emit) -> None:
