@@ -21,7 +21,7 @@ from phjax.live import opentrack_values
 @pytest.fixture
 def cli_jax_config():
     """The CLI turns JAX's asynchronous CPU dispatch off; restore it for the other tests."""
-    old = jax.config.jax_cpu_enable_async_dispatch
+    old = jax.config.read("jax_cpu_enable_async_dispatch")
     yield
     jax.config.update("jax_cpu_enable_async_dispatch", old)
 
