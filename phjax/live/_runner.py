@@ -23,8 +23,8 @@ filter's covariance, so no information is counted twice.
 Adaptive settling. When measurements arrive less often than the tracker's ``horizon`` (a slow
 front-end), a correction applied within ``horizon`` would be a visible step. With
 ``adaptive=True`` the runner sets ``horizon`` to the measured interval between good
-measurements (at least the configured value, at most 0.3 s) and ``coast_time`` to 1.5 times
-that interval, so the stream settles on each prediction just before the next measurement and
+measurements (its running mean, or the last interval if longer, as after a lost face; at least
+the configured value, at most 0.5 s) and ``coast_time`` to 1.5 times that, so the stream settles on each prediction just before the next measurement and
 does not stop between measurements (changing these values does not recompile).
 
 Never NaN: before the first good measurement nothing is sent; afterwards a non-finite sample
@@ -416,7 +416,9 @@ class LiveTracker:
             self._interval_ema = dt if self._interval_ema is None else (
                 0.8 * self._interval_ema + 0.2 * dt)
             base = self.base_config
-            horizon = min(max(float(base.horizon), self._interval_ema), 0.3)
+            # the typical interval, or this one if longer (re-acquisition after a loss: the
+            # larger correction is spread over a longer time)
+            horizon = min(max(float(base.horizon), self._interval_ema, dt), 0.5)
             coast = max(float(base.coast_time), 1.5 * horizon)
             used = self._config_used
             if abs(horizon - float(used.horizon)) > 0.15 * float(used.horizon):
