@@ -290,6 +290,7 @@ class LiveTracker:
         self._last_send = None
         self.t0 = None
         self._end_time = None
+        self._t_render_end = None
         self.k = 0
 
     # ------------------------------------------------------------------ lifecycle
@@ -451,6 +452,7 @@ class LiveTracker:
         except BaseException as e:  # noqa: BLE001
             self.error = e
         finally:
+            self._t_render_end = self.clock.now()
             self._stop.set()
             self.clock.unregister()
             self._render_done.set()
@@ -550,7 +552,8 @@ class LiveTracker:
         iv = self.intervals.values()
         ages = self.ages.values()
         ft = self.frame_times.values()
-        elapsed = (self.clock.now() - self.t0) if self.t0 is not None else 0.0
+        end = self._t_render_end if self._t_render_end is not None else self.clock.now()
+        elapsed = (end - self.t0) if self.t0 is not None else 0.0
         cam = (ft.size - 1) / (ft.max() - ft.min()) if ft.size > 1 and ft.max() > ft.min() \
             else float("nan")
         return {
