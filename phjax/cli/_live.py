@@ -17,7 +17,7 @@ def cmd_live(args) -> int:
     try:
         lt = LiveTracker(args.source, args.output or [], rate=args.rate, duration=args.duration,
                          log=args.log, center=args.center, model_dir=args.model_dir,
-                         ipd=args.ipd, fov=args.fov)
+                         ipd=args.ipd, fov=args.fov, realtime=args.realtime)
         lt.start()
     except (SourceError, OutputError, ValueError, FileNotFoundError) as e:
         print(f"phjax live: error: {e}", file=sys.stderr)
@@ -95,5 +95,9 @@ def add_commands(sub) -> None:
                    help="YuNet model cache (default $PHJAX_MODEL_DIR or ~/.cache/phjax/models)")
     p.add_argument("--status-interval", type=float, default=1.0,
                    help="seconds between status lines (default 1)")
+    p.add_argument("--realtime", action="store_true",
+                   help="run the render loop with real-time scheduling (SCHED_FIFO; Linux, "
+                   "needs CAP_SYS_NICE or an rtprio limit; best effort): keeps the deadlines "
+                   "on a busy CPU")
     p.add_argument("--quiet", action="store_true", help="no status line")
     p.set_defaults(func=cmd_live)

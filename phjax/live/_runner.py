@@ -133,12 +133,22 @@ class LiveStream(TrackerStream):
                                   np.asarray(position, dt), np.asarray(quaternion, dt))
 
 
+#: innovation gate of live configs: chi-square, 3 dof, p = 0.001
+LIVE_GATE_NIS = 16.27
+
+
 def live_tracker_config(depth_free: bool = False, base: TrackerConfig | None = None
                         ) -> TrackerConfig:
-    """The tracker config of a live source: ``base`` (default :class:`TrackerConfig()`) with
-    the monocular measurement noise (:data:`phjax.vision.monocular.MONOCULAR_NOISE`) when the
-    poses come from colour alone."""
-    base = TrackerConfig() if base is None else base
+    """The tracker config of a live source.
+
+    ``base`` (default :class:`TrackerConfig()` with the innovation gate
+    :data:`LIVE_GATE_NIS`, so that a gross front-end error, e.g. a misaligned frame, is
+    rejected instead of swinging the view), with the monocular measurement noise
+    (:data:`phjax.vision.monocular.MONOCULAR_NOISE`) when the poses come from colour alone.
+    A given ``base`` keeps its own gate.
+    """
+    if base is None:
+        base = TrackerConfig(kalman=KalmanConfig(gate_nis=LIVE_GATE_NIS))
     if not depth_free:
         return base
     from ..vision.monocular import MONOCULAR_NOISE
@@ -215,6 +225,10 @@ class LiveTracker:
             effort: raising the render thread's priority needs ``CAP_SYS_NICE`` and is skipped
             without it; ``None``: unchanged). By default the render thread gets a little more
             of a busy CPU than the capture thread's front-end.
+        realtime: run the render thread with the real-time policy ``SCHED_FIFO`` (Linux,
+            best effort: needs ``CAP_SYS_NICE`` or an ``rtprio`` limit; ``realtime_active``
+            says whether it took effect). On a busy CPU this keeps the render deadlines when
+            ordinary priorities do not; the thread sleeps between samples (a few % of a core).
         linger: without ``duration``, keep rendering this long after the source ends, s.
 
     Use as a context manager (``start`` / ``stop``) and iterate :meth:`samples`, read
@@ -232,7 +246,8 @@ class LiveTracker:
                  adaptive: bool = True, clock=None, callback: Callable[[Sample], None] | None
                  = None, model_dir=None, ipd: float | None = None, fov: float = 60.0,
                  switch_interval: float | None = 5e-4, linger: float = 0.5,
-                 render_nice: int | None = -5, capture_nice: int | None = 5):
+                 render_nice: int | None = -5, capture_nice: int | None = 5,
+                 realtime: bool = False):
         if not (math.isfinite(rate) and rate > 0):
             raise ValueError(f"rate must be a positive number, got {rate}")
         if duration is not None and not duration > 0:
@@ -243,6 +258,8 @@ class LiveTracker:
         self.adaptive = adaptive
         self.linger = float(linger)
         self.render_nice, self.capture_nice = render_nice, capture_nice
+        self.realtime = bool(realtime) and not self.clock.virtual
+        self.realtime_active = False
         self.switch_interval = None if self.clock.virtual else switch_interval
         self._outputs: list[Output] = []
         self._log = None
@@ -431,6 +448,8 @@ class LiveTracker:
     # ------------------------------------------------------------------ render thread
     def _render_main(self) -> None:
         _renice(self.render_nice)
+        if self.realtime:
+            self.realtime_active = _set_fifo()
         clock, period = self.clock, 1.0 / self.rate
         try:
             while not self._stop.is_set():
@@ -595,6 +614,17 @@ def _renice(increment: int | None) -> None:
         os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + increment)
     except OSError:
         pass
+
+
+def _set_fifo() -> bool:
+    """Put the calling thread under ``SCHED_FIFO`` (lowest real-time priority); True if done."""
+    if not hasattr(os, "sched_setscheduler") or not hasattr(threading, "get_native_id"):
+        return False
+    try:
+        os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO, os.sched_param(1))
+    except OSError:
+        return False
+    return True
 
 
 def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -46,7 +46,7 @@ def test_acceptance_synthetic_opentrack(listener, model_cache, tmp_path, cli_jax
     rate = 120.0
     rc = main(["live", "synthetic:240", "--output", f"opentrack://127.0.0.1:{listener.port}",
                "--rate", str(rate), "--duration", "6", "--log", str(log), "--model-dir",
-               str(model_cache), "--status-interval", "2"])
+               str(model_cache), "--status-interval", "2", "--realtime"])
     listener.close()
     err = capsys.readouterr().err
     assert rc == 0, err

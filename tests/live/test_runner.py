@@ -17,6 +17,7 @@ from phjax.live import (
     LiveTracker,
     PoseReplaySource,
     VirtualClock,
+    live_tracker_config,
     opentrack_values,
 )
 from phjax.tracking import TrackerStream
@@ -30,8 +31,9 @@ def test_late_update_is_continuous_and_filters_at_capture_time():
     """A measurement that arrives late does not make the rendered pose jump; a plain update
     at the capture time does (the reason for update_late); the filter runs at capture time."""
     t, p, q = smooth_motion(40, 30.0, seed=3)
-    late = LiveStream()
-    plain = TrackerStream(dtype=late._layout.dtype)
+    cfg = live_tracker_config()  # the runner's config: its compiled update is reused below
+    late = LiveStream(cfg)
+    plain = TrackerStream(cfg, dtype=late._layout.dtype)
     latency = 0.1
     jumps_late, jumps_plain = [], []
     for i in range(40):
