@@ -11,11 +11,12 @@ the parts, in the order the data flows:
 * :mod:`phjax.curves`: the PH quintic engine, sampling, shape optimisation, C2 splines,
   quaternion curves.
 * :mod:`phjax.evaluation`: metrics and the comparison with baselines.
+* :mod:`phjax.live`: live tracking (camera in, smooth poses out to opentrack / OSC).
 * :mod:`phjax.quaternion` (rotation algebra), :mod:`phjax.io` (trajectory files),
   :mod:`phjax.datasets` (the shared recordings), :mod:`phjax.cli` (the command line).
 """
 
-from . import curves, evaluation, io, motion, quaternion, tracking, vision
+from . import curves, evaluation, io, live, motion, quaternion, tracking, vision
 from .curves import (
     FrameKind,
     PHQuintic,
@@ -118,6 +119,7 @@ __version__ = "0.1.0"
 __all__ = [
     "curves",
     "evaluation",
+    "live",
     "motion",
     "quaternion",
     "tracking",

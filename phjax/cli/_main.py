@@ -10,6 +10,7 @@ Commands:
     tune         tune the tracker's parameters by gradient on recordings (JSON for --config).
     track-rgbd   head pose per RGB-D frame (Biwi / TUM / colour+depth folder / synthetic), then
                  the smooth render-rate stream.
+    live         live tracking: camera / recording in, smooth poses out to opentrack / OSC.
 """
 
 from __future__ import annotations
@@ -154,11 +155,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--x64", action="store_true", help="compute in float64")
     p.set_defaults(func=cmd_demo_curve)
 
-    from . import _rgbd, _tracking, _tune
+    from . import _live, _rgbd, _tracking, _tune
 
     _tracking.add_commands(sub)
     _tune.add_commands(sub)
     _rgbd.add_commands(sub)
+    _live.add_commands(sub)
     for command in sub.choices.values():  # also accepted after the command name
         command.add_argument("--no-cache", action="store_true", default=argparse.SUPPRESS,
                              help="do not use JAX's persistent compilation cache "

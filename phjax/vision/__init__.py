@@ -12,6 +12,7 @@ The pipeline, in the order a frame goes through it:
 * :mod:`~phjax.vision.head_pose`: ``HeadPoseEstimator`` (the whole front-end) and
   ``rgbd_relative_pose``.
 * :mod:`~phjax.vision.synthetic_rgbd`: a rendered synthetic head with exact ground truth.
+* :mod:`~phjax.vision.monocular`: head pose from colour alone (YuNet landmarks + PnP).
 
 OpenCV, kornia and torch are optional (the ``vision`` extra); they are imported when used.
 """
@@ -35,6 +36,7 @@ from .icp import (
     icp_point_to_plane,
     icp_projective,
 )
+from .monocular import MonocularHeadPose, face_model, intrinsics_from_fov
 from .rgbd_io import CameraIntrinsics, RGBDFrame, RGBDSequence, open_rgbd
 from .synthetic_rgbd import (
     HeadModel,
@@ -59,6 +61,7 @@ __all__ = [
     "HeadPoseStatus",
     "IcpResult",
     "IcpStatus",
+    "MonocularHeadPose",
     "PinholeIntrinsics",
     "RGBDFrame",
     "RGBDSequence",
@@ -68,8 +71,10 @@ __all__ = [
     "align",
     "backproject",
     "estimate_normals",
+    "face_model",
     "icp_point_to_plane",
     "icp_projective",
+    "intrinsics_from_fov",
     "open_rgbd",
     "ransac_align",
     "render_rgbd",

@@ -1,0 +1,103 @@
+"""Live command of the ``phjax`` CLI: ``live``."""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+
+
+def cmd_live(args) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_cpu_enable_async_dispatch", False)
+    from ..live import LiveTracker, OutputError, SourceError
+
+    try:
+        lt = LiveTracker(args.source, args.output or [], rate=args.rate, duration=args.duration,
+                         log=args.log, center=args.center, model_dir=args.model_dir,
+                         ipd=args.ipd, fov=args.fov, realtime=args.realtime)
+        lt.start()
+    except (SourceError, OutputError, ValueError, FileNotFoundError) as e:
+        print(f"phjax live: error: {e}", file=sys.stderr)
+        return 2
+    outs = ", ".join(o.url for o in lt.outputs) or "none"
+    print(f"phjax live: {lt.source.name} -> {outs} at {args.rate:g} Hz"
+          + (f", log {args.log}" if args.log else ""), file=sys.stderr)
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        def on_term(signum, frame):
+            lt._stop.set()
+
+        def on_usr1(signum, frame):
+            lt.center()
+
+        previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, on_term)
+        if hasattr(signal, "SIGUSR1"):
+            previous[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, on_usr1)
+    tty = sys.stderr.isatty()
+
+    def status(line: str) -> None:
+        if args.quiet:
+            return
+        print(("\r" + line) if tty else line, end="" if tty else "\n", file=sys.stderr,
+              flush=True)
+
+    try:
+        lt.run(status=status, status_interval=args.status_interval)
+    except KeyboardInterrupt:
+        lt.stop()
+    except Exception as e:  # noqa: BLE001 - a failing camera at run time
+        print(f"\nphjax live: error: {e}", file=sys.stderr)
+        return 1
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if tty and not args.quiet:
+        print(file=sys.stderr)
+    s = lt.stats()
+    print(f"phjax live: sent {s['sent']} poses in {s['elapsed']:.2f} s "
+          f"({s['sent'] / max(s['elapsed'], 1e-9):.1f} Hz), {s['frames']} camera frames",
+          file=sys.stderr)
+    return 0
+
+
+def add_commands(sub) -> None:
+    p = sub.add_parser(
+        "live", help="live head tracking: camera in, smooth poses out to opentrack / OSC",
+        description="Track a head live and send smooth render-rate poses. A capture thread "
+        "runs SOURCE's frames through the head-pose front-end and feeds the streaming tracker; "
+        "a render loop samples it at --rate on absolute deadlines and sends each pose to every "
+        "--output (and to --log). SOURCE: synthetic[:N[:SEED]] (the rendered test head), an "
+        "RGB-D folder (Biwi, TUM RGB-D, color/+depth/), webcam[:INDEX] or a video file "
+        "(monocular: YuNet landmarks + PnP), realsense[:SERIAL] (pyrealsense2), poses:FILE "
+        "(replay a pose file). Stops at the end of the source, after --duration, on Ctrl-C or "
+        "SIGTERM; SIGUSR1 re-centres. Output axes: see docs/live.md.")
+    p.add_argument("source", help="synthetic[:N[:SEED]] | RGB-D folder | webcam[:INDEX] | "
+                   "video file | realsense[:SERIAL] | poses:FILE")
+    p.add_argument("--output", "-o", action="append", metavar="URL",
+                   help="opentrack://HOST[:PORT] (default port 4242; 48-byte datagrams of six "
+                   "float64: x y z cm, yaw pitch roll deg) or osc://HOST[:PORT] (default 9000; "
+                   "/phjax/pose t x y z qw qx qy qz); repeatable")
+    p.add_argument("--rate", type=float, default=120.0, help="render rate, Hz (default 120)")
+    p.add_argument("--duration", type=float, default=None,
+                   help="stop after this many seconds (default: end of the source / Ctrl-C)")
+    p.add_argument("--log", default=None, help="write every sent pose to this TUM file")
+    p.add_argument("--center", action="store_true",
+                   help="the first pose becomes the origin (SIGUSR1 re-centres at any time)")
+    p.add_argument("--ipd", type=float, default=None,
+                   help="monocular sources: assumed inter-pupillary distance, m (default 0.063)")
+    p.add_argument("--fov", type=float, default=60.0,
+                   help="monocular sources: horizontal field of view of the camera, degrees "
+                   "(default 60)")
+    p.add_argument("--model-dir", default=None,
+                   help="YuNet model cache (default $PHJAX_MODEL_DIR or ~/.cache/phjax/models)")
+    p.add_argument("--status-interval", type=float, default=1.0,
+                   help="seconds between status lines (default 1)")
+    p.add_argument("--realtime", action="store_true",
+                   help="run the render loop with real-time scheduling (SCHED_FIFO; Linux, "
+                   "needs CAP_SYS_NICE or an rtprio limit; best effort): keeps the deadlines "
+                   "on a busy CPU")
+    p.add_argument("--quiet", action="store_true", help="no status line")
+    p.set_defaults(func=cmd_live)

@@ -1,0 +1,634 @@
+"""The live runner: a capture thread feeding the tracker, a render loop sending poses.
+
+Two threads share one :class:`phjax.tracking.TrackerStream`:
+
+* **capture**: the source's frames (camera rate), head pose, then a stream update;
+* **render**: at absolute deadlines ``t_k = t0 + k / rate`` (no drift: a late wake-up does not
+  delay the next deadline; deadlines missed by a whole period are skipped and counted) it
+  samples the stream at ``t_k`` and sends the pose to every output.
+
+The threads only exchange the stream's packed state (replaced atomically by an update) and a
+few numbers, so a slow or failed frame is a late or missing measurement and never stalls the
+render loop.
+
+Late measurements. A camera frame taken at ``t_c`` reaches the tracker at ``t_a > t_c``
+(rendering, face detection, pose estimation). :meth:`LiveStream.update_late` runs the Kalman
+filter with the measurement at its true time ``t_c`` but starts the new render segment at
+``t_a`` from the pose being rendered then (a plain update at ``t_c`` would start the segment in
+the past, so the correction it applies over the elapsed ``t_a - t_c`` would appear at once as
+a jump). It calls the tracker's own update at ``t_a`` with the filter's prediction as the
+measurement (zero innovation, so the filter's mean is unchanged) and then restores the
+filter's covariance, so no information is counted twice.
+
+Adaptive settling. When measurements arrive less often than the tracker's ``horizon`` (a slow
+front-end), a correction applied within ``horizon`` would be a visible step. With
+``adaptive=True`` the runner sets ``horizon`` to the measured interval between good
+measurements (its running mean, or the last interval if longer, as after a lost face; at least
+the configured value, at most 0.5 s) and ``coast_time`` to 1.5 times that, so the stream settles on each prediction just before the next measurement and
+does not stop between measurements (changing these values does not recompile).
+
+Never NaN: before the first good measurement nothing is sent; afterwards a non-finite sample
+(none is expected) is replaced by the last good one. A lost face makes the stream coast, then
+come to rest (``coast_time``, ``stop_time`` of :class:`phjax.TrackerConfig`).
+
+Centring (as opentrack does): the pose at the first sample (``center=True``) or at the next
+sample after :meth:`LiveTracker.center` becomes the origin: orientation ``q_c^-1 q``, position
+``R_c^T (p - p_c)`` (the head's own axes at the centre pose become the reference axes).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import queue
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Self
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._np_quat import np_qconj, np_qmul
+from ..tracking.kalman import KalmanConfig, kalman_step, predict_pose
+from ..tracking.stream import TrackerStream, _Layout
+from ..tracking.tracker import TrackerConfig, tracker_update
+from ._clock import RealClock, VirtualClock
+from ._outputs import Output, TumLog, open_output
+from ._sources import Measurement, Source, open_source
+
+__all__ = ["LiveStream", "LiveTracker", "Sample", "live_tracker_config"]
+
+
+# ------------------------------------------------------------------------------- stream
+def _late_update(config: TrackerConfig, state, t_meas, t_now, position, quaternion):
+    """Filter at the capture time ``t_meas``, render segment from ``t_now`` (module docs)."""
+    k = config.kalman
+    fresh = ~state.filter.initialized
+    kf, info = kalman_step(k, state.filter, t_meas, position, quaternion)
+    used = info.pos_used | info.rot_used
+    t_now = jnp.maximum(jnp.asarray(t_now, kf.t.dtype), kf.t)
+    p_now, q_now, _, _ = predict_pose(k, kf, t_now)
+    seeded = eqx.tree_at(lambda s: s.filter, state, kf)
+    choose = lambda c, a, b: jax.tree.map(lambda x, y: jnp.where(c, x, y), a, b)
+    # first measurement: a plain update (nothing was rendered before, no jump to avoid);
+    # afterwards the zero-innovation update at t_now from the filter at t_meas
+    out = tracker_update(config, choose(fresh, state, seeded), jnp.where(fresh, t_meas, t_now),
+                         jnp.where(fresh, position, p_now), jnp.where(fresh, quaternion, q_now))
+    out = eqx.tree_at(lambda s: s.filter, out, choose(fresh, out.filter, kf))
+    return choose(fresh | used, out, seeded)
+
+
+_COMPILED_LATE: dict = {}
+
+
+def _compiled_late(config_layout: _Layout, state_layout: _Layout):
+    key = (config_layout.treedef, tuple(config_layout.meta), config_layout.dtype,
+           state_layout.treedef, tuple(state_layout.meta), state_layout.groups, state_layout.dtype)
+    fn = _COMPILED_LATE.get(key)
+    if fn is None:
+        def packed(cvec, svecs, t_meas, t_now, position, quaternion):
+            config = config_layout.unpack(cvec)
+            state = state_layout.unpack(svecs)
+            return state_layout.pack(_late_update(config, state, t_meas, t_now, position,
+                                                  quaternion))
+
+        fn = _COMPILED_LATE[key] = jax.jit(packed)
+    return fn
+
+
+class LiveStream(TrackerStream):
+    """:class:`phjax.tracking.TrackerStream` with late measurements and a settable config.
+
+    Arguments: as :class:`phjax.tracking.TrackerStream`.
+    """
+
+    def __init__(self, config: TrackerConfig | None = None, t: float = 0.0, dtype=None):
+        if dtype is None:
+            dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+        super().__init__(config, t, dtype)
+        self._dtype = np.dtype(self._layout.dtype).type
+        self._late = _compiled_late(self._config_layout, self._layout)
+
+    def set_config(self, config: TrackerConfig) -> None:
+        """Use another config of the same structure (no recompilation)."""
+        self._cvec = self._config_layout.pack(config)
+        self.config = config
+
+    def update_late(self, t_measured: float, t_now: float, position, quaternion) -> None:
+        """Feed a measurement taken at ``t_measured`` that arrives at ``t_now`` (module docs).
+
+        Arguments:
+            t_measured: capture time, s.
+            t_now: current time (the new render segment starts here), s.
+            position: ``(3,)`` m, NaN if missing; quaternion: ``(4,)`` ``wxyz``, NaN if missing.
+        """
+        dt = self._dtype
+        self._packed = self._late(self._cvec, self._packed, dt(t_measured), dt(t_now),
+                                  np.asarray(position, dt), np.asarray(quaternion, dt))
+
+
+#: innovation gate of live configs: chi-square, 3 dof, p = 0.001
+LIVE_GATE_NIS = 16.27
+
+
+def live_tracker_config(depth_free: bool = False, base: TrackerConfig | None = None
+                        ) -> TrackerConfig:
+    """The tracker config of a live source.
+
+    ``base`` (default :class:`TrackerConfig()` with the innovation gate
+    :data:`LIVE_GATE_NIS`, so that a gross front-end error, e.g. a misaligned frame, is
+    rejected instead of swinging the view), with the monocular measurement noise
+    (:data:`phjax.vision.monocular.MONOCULAR_NOISE`) when the poses come from colour alone.
+    A given ``base`` keeps its own gate.
+    """
+    if base is None:
+        base = TrackerConfig(kalman=KalmanConfig(gate_nis=LIVE_GATE_NIS))
+    if not depth_free:
+        return base
+    from ..vision.monocular import MONOCULAR_NOISE
+
+    k = base.kalman
+    kalman = KalmanConfig(model=k.model, pos_process_noise=k.pos_process_noise,
+                          pos_meas_noise=max(float(k.pos_meas_noise), MONOCULAR_NOISE[0]),
+                          rot_process_noise=k.rot_process_noise,
+                          rot_meas_noise=max(float(k.rot_meas_noise), MONOCULAR_NOISE[1]),
+                          init_pos_vel_std=k.init_pos_vel_std,
+                          init_pos_acc_std=k.init_pos_acc_std,
+                          init_rot_vel_std=k.init_rot_vel_std, gate_nis=k.gate_nis)
+    return eqx.tree_at(lambda c: c.kalman, base, kalman)
+
+
+# ------------------------------------------------------------------------------- runner
+@dataclass(frozen=True)
+class Sample:
+    """One sent pose.
+
+    Attributes:
+        t: render time, s since the start of the run.
+        position: ``(3,)`` m; quaternion: ``(4,)`` ``wxyz`` (after centring: what was sent).
+        age: ``t`` minus the capture time of the newest measurement applied, s.
+    """
+
+    t: float
+    position: np.ndarray
+    quaternion: np.ndarray
+    age: float
+
+
+class _Ring:
+    """The last ``n`` values of a float series (bounded memory)."""
+
+    def __init__(self, n: int = 8192):
+        self.a = np.full(n, np.nan)
+        self.i = 0
+
+    def add(self, x: float) -> None:
+        self.a[self.i % self.a.shape[0]] = x
+        self.i += 1
+
+    def values(self) -> np.ndarray:
+        v = self.a if self.i >= self.a.shape[0] else self.a[: self.i]
+        return v[np.isfinite(v)]
+
+
+def _percentile(v: np.ndarray, q: float) -> float:
+    return float(np.percentile(v, q)) if v.size else float("nan")
+
+
+class LiveTracker:
+    """Run a live source through the tracker and send the poses to outputs.
+
+    Arguments:
+        source: a :class:`phjax.live.Source` or a ``phjax live`` SOURCE string.
+        outputs: :class:`phjax.live.Output` objects or URLs (``opentrack://HOST:PORT``,
+            ``osc://HOST:PORT``).
+        rate: render rate, Hz.
+        duration: stop after this many seconds (default: when the source ends, after the
+            stream has come to rest, or on :meth:`stop`).
+        log: path of a TUM log of every sent pose.
+        center: make the first sent pose the origin (see :meth:`center`).
+        config: tracker config (default :func:`live_tracker_config` of the source).
+        adaptive: adapt the settling time to the measurement rate (module docs).
+        clock: :class:`RealClock` (default) or :class:`VirtualClock`.
+        callback: called with each :class:`Sample` in the render thread (keep it short).
+        model_dir, ipd, fov: passed to :func:`phjax.live.open_source` for a string source.
+        switch_interval: Python's thread switch interval while running, s (default 0.5 ms:
+            the render thread gets the GIL within that time of its deadline; restored at
+            :meth:`stop`); ``None`` leaves it alone.
+        render_nice, capture_nice: niceness increments of the two threads (Linux, best
+            effort: raising the render thread's priority needs ``CAP_SYS_NICE`` and is skipped
+            without it; ``None``: unchanged). By default the render thread gets a little more
+            of a busy CPU than the capture thread's front-end.
+        realtime: run the render thread with the real-time policy ``SCHED_FIFO`` (Linux,
+            best effort: needs ``CAP_SYS_NICE`` or an ``rtprio`` limit; ``realtime_active``
+            says whether it took effect). On a busy CPU this keeps the render deadlines when
+            ordinary priorities do not; the thread sleeps between samples (a few % of a core).
+        linger: without ``duration``, keep rendering this long after the source ends, s.
+
+    Use as a context manager (``start`` / ``stop``) and iterate :meth:`samples`, read
+    :attr:`latest`, or pass a ``callback``::
+
+        with phjax.live.LiveTracker("synthetic:240", ["opentrack://127.0.0.1:4242"],
+                                    rate=120, duration=5) as lt:
+            for s in lt.samples():
+                print(s.t, s.position, s.quaternion)
+    """
+
+    def __init__(self, source: Source | str, outputs: Sequence[Output | str] = (), *,
+                 rate: float = 120.0, duration: float | None = None, log=None,
+                 center: bool = False, config: TrackerConfig | None = None,
+                 adaptive: bool = True, clock=None, callback: Callable[[Sample], None] | None
+                 = None, model_dir=None, ipd: float | None = None, fov: float = 60.0,
+                 switch_interval: float | None = 5e-4, linger: float = 0.5,
+                 render_nice: int | None = -5, capture_nice: int | None = 5,
+                 realtime: bool = False):
+        if not (math.isfinite(rate) and rate > 0):
+            raise ValueError(f"rate must be a positive number, got {rate}")
+        if duration is not None and not duration > 0:
+            raise ValueError(f"duration must be positive, got {duration}")
+        self.rate, self.duration = float(rate), duration
+        self.clock = RealClock() if clock is None else clock
+        self.callback = callback
+        self.adaptive = adaptive
+        self.linger = float(linger)
+        self.render_nice, self.capture_nice = render_nice, capture_nice
+        self.realtime = bool(realtime) and not self.clock.virtual
+        self.realtime_active = False
+        self.switch_interval = None if self.clock.virtual else switch_interval
+        self._outputs: list[Output] = []
+        self._log = None
+        self.source = None
+        try:
+            self.source = source if isinstance(source, Source) else open_source(
+                source, model_dir=model_dir, ipd=ipd, fov=fov)
+            for out in outputs:
+                self._outputs.append(out if isinstance(out, Output) else open_output(out))
+            if log is not None:
+                self._log = TumLog(log)
+        except BaseException:
+            self._close_outputs()
+            raise
+        self.base_config = config if config is not None else live_tracker_config(
+            self.source.depth_free)
+        self._config_used = self.base_config
+        self.stream = LiveStream(self.base_config)
+        self._center_flag = bool(center)
+        self._center_request = False
+        self._center = None
+        self._stop = threading.Event()
+        self._finished = threading.Event()
+        self._render_done = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._queues: list[queue.Queue] = []
+        self._started = False
+        self._closed = False
+        self.error: BaseException | None = None
+        # statistics (written by one thread each)
+        self.status_counts: Counter = Counter()
+        self.frames = 0
+        self.sent = 0
+        self.missed_deadlines = 0
+        self.waiting = 0
+        self.held = 0
+        self.intervals = _Ring()
+        self.ages = _Ring()
+        self.frame_times = _Ring(256)
+        self.latest: Sample | None = None
+        self._last_capture = None
+        self._last_ok_t = None
+        self._interval_ema = None
+        self._last_good = None
+        self._last_send = None
+        self.t0 = None
+        self._end_time = None
+        self._t_render_end = None
+        self.k = 0
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> LiveTracker:
+        """Open the source (warm-up included), compile the stream and start both threads."""
+        if self._started:
+            raise RuntimeError("a LiveTracker can be started once")
+        self._started = True
+        try:
+            self.source.open()
+            self._warm_up()
+        except BaseException:
+            self._cleanup()
+            raise
+        if self.switch_interval is not None:
+            self._old_switch = sys.getswitchinterval()
+            sys.setswitchinterval(self.switch_interval)
+        self.t0 = self.clock.now()
+        if self.duration is not None:
+            self._end_time = self.t0 + float(self.duration)
+        self._threads = [threading.Thread(target=self._capture_main, name="phjax-live-capture",
+                                          daemon=True),
+                         threading.Thread(target=self._render_main, name="phjax-live-render",
+                                          daemon=True)]
+        for th in self._threads:
+            self.clock.register()  # registered before start: the virtual clock waits for both
+        for th in self._threads:
+            th.start()
+        return self
+
+    def _warm_up(self) -> None:
+        s = LiveStream(self.base_config)
+        p, q = np.zeros(3), np.array([1.0, 0, 0, 0])
+        s.update_late(0.0, 0.01, p, q)
+        s.update_late(0.02, 0.03, p, q)
+        np.asarray(s.sample(0.04)[0])
+
+    def stop(self) -> None:
+        """Stop both threads, close the outputs, the log and the source (idempotent)."""
+        self._stop.set()
+        if isinstance(self.clock, VirtualClock):
+            self.clock.wake()
+        for th in self._threads:
+            th.join()
+        self._cleanup()
+
+    def _cleanup(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._close_outputs()
+        try:
+            if self.source is not None:
+                self.source.close()
+        finally:
+            if getattr(self, "_old_switch", None) is not None:
+                sys.setswitchinterval(self._old_switch)
+                self._old_switch = None
+            for q in self._queues:
+                try:
+                    q.put_nowait(None)
+                except queue.Full:
+                    pass
+            self._finished.set()
+
+    def _close_outputs(self) -> None:
+        for out in self._outputs:
+            out.close()
+        if self._log is not None:
+            self._log.close()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait until the run ends by itself (duration, end of source); True if it ended."""
+        return self._render_done.wait(timeout)
+
+    def __enter__(self) -> Self:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    @property
+    def running(self) -> bool:
+        return self._started and not self._closed and any(t.is_alive() for t in self._threads)
+
+    def center(self) -> None:
+        """Make the pose of the next sample the origin."""
+        self._center_request = True
+
+    @property
+    def outputs(self) -> list[Output]:
+        return list(self._outputs)
+
+    # ------------------------------------------------------------------ capture thread
+    def _capture_main(self) -> None:
+        _renice(self.capture_nice)
+        try:
+            self.source.run(self.clock, self.t0, self._stop, self._on_measurement)
+        except BaseException as e:  # noqa: BLE001 - reported by run() / the CLI
+            self.error = e
+            self._stop.set()
+        finally:
+            if self._end_time is None:
+                self._end_time = self.clock.now() + self.linger
+            self.clock.unregister()
+
+    def _on_measurement(self, m: Measurement) -> None:
+        now = self.clock.now()
+        self.frames += 1
+        self.status_counts[m.status] += 1
+        self.frame_times.add(m.t)
+        ok = m.ok
+        if ok and self.adaptive:
+            self._adapt(m.t)
+        self.stream.update_late(m.t - self.t0, max(now, m.t) - self.t0,
+                                np.asarray(m.position, np.float64),
+                                np.asarray(m.quaternion, np.float64))
+        if ok:
+            self._last_capture = m.t
+
+    def _adapt(self, t: float) -> None:
+        if self._last_ok_t is not None:
+            dt = min(max(t - self._last_ok_t, 0.0), 1.0)
+            self._interval_ema = dt if self._interval_ema is None else (
+                0.8 * self._interval_ema + 0.2 * dt)
+            base = self.base_config
+            # the typical interval, or this one if longer (re-acquisition after a loss: the
+            # larger correction is spread over a longer time)
+            horizon = min(max(float(base.horizon), self._interval_ema, dt), 0.5)
+            coast = max(float(base.coast_time), 1.5 * horizon)
+            used = self._config_used
+            if abs(horizon - float(used.horizon)) > 0.15 * float(used.horizon):
+                cfg = eqx.tree_at(lambda c: (c.horizon, c.coast_time), base, (horizon, coast))
+                self.stream.set_config(cfg)
+                self._config_used = cfg
+        self._last_ok_t = t
+
+    # ------------------------------------------------------------------ render thread
+    def _render_main(self) -> None:
+        _renice(self.render_nice)
+        if self.realtime:
+            self.realtime_active = _set_fifo()
+        clock, period = self.clock, 1.0 / self.rate
+        try:
+            while not self._stop.is_set():
+                t_k = self.t0 + self.k * period
+                end = self._end_time
+                if end is not None and t_k > end + 1e-9:
+                    break
+                clock.sleep_until(t_k, self._stop)
+                if self._stop.is_set():
+                    break
+                late = clock.now() - t_k
+                if late >= period:  # whole periods missed: skip them (no backlog, no drift)
+                    skip = int(late / period)
+                    self.k += skip
+                    self.missed_deadlines += skip
+                    t_k = self.t0 + self.k * period
+                self._render_one(t_k)
+                self.k += 1
+        except BaseException as e:  # noqa: BLE001
+            self.error = e
+        finally:
+            self._t_render_end = self.clock.now()
+            self._stop.set()
+            self.clock.unregister()
+            self._render_done.set()
+
+    def _render_one(self, t_k: float) -> None:
+        p, q = self.stream.sample(t_k - self.t0)
+        p = np.asarray(p, np.float64)
+        q = np.asarray(q, np.float64)
+        if np.isfinite(p).all() and np.isfinite(q).all():
+            self._last_good = (p, q)
+        elif self._last_good is None:
+            self.waiting += 1
+            return
+        else:
+            p, q = self._last_good
+            self.held += 1
+        if self._center_request or (self._center_flag and self._center is None):
+            self._center = (p.copy(), q.copy())
+            self._center_request = False
+        if self._center is not None:
+            pc, qc = self._center
+            qi = np_qconj(qc)
+            q = np_qmul(qi, q)
+            d = p - pc
+            p = _rotate(qi, d)
+        q = q / np.linalg.norm(q)
+        ts = t_k - self.t0
+        for out in self._outputs:
+            out.send(ts, p, q)
+        if self._log is not None:
+            self._log.send(ts, p, q)
+        now = self.clock.now()
+        if self._last_send is not None:
+            self.intervals.add(now - self._last_send)
+        self._last_send = now
+        age = t_k - self._last_capture if self._last_capture is not None else float("nan")
+        self.ages.add(age)
+        self.sent += 1
+        s = Sample(ts, p, q, age)
+        self.latest = s
+        if self.callback is not None:
+            self.callback(s)
+        for qu in self._queues:
+            try:
+                qu.put_nowait(s)
+            except queue.Full:
+                pass
+
+    # ------------------------------------------------------------------ consumers
+    def samples(self, maxsize: int = 1024) -> Iterator[Sample]:
+        """Iterate over the sent samples until the run ends (a slow consumer loses samples
+        once ``maxsize`` are queued, never the render loop's time)."""
+        qu: queue.Queue = queue.Queue(maxsize=maxsize)
+        self._queues.append(qu)
+        try:
+            while True:
+                try:
+                    s = qu.get(timeout=0.1)
+                except queue.Empty:
+                    if self._finished.is_set() or (self._render_done.is_set() and qu.empty()):
+                        return
+                    continue
+                if s is None:
+                    return
+                yield s
+        finally:
+            self._queues.remove(qu)
+
+    def run(self, status: Callable[[str], None] | None = None, status_interval: float = 1.0
+            ) -> None:
+        """Start, block until the run ends (duration, end of source, Ctrl-C), stop.
+
+        Arguments:
+            status: called with :meth:`status_line` every ``status_interval`` seconds.
+
+        Raises:
+            the capture or render thread's exception, if one ended the run.
+        """
+        if not self._started:
+            self.start()
+        try:
+            next_status = time.monotonic() + status_interval
+            while not self._render_done.wait(0.1):
+                if status is not None and time.monotonic() >= next_status:
+                    status(self.status_line())
+                    next_status += status_interval
+        finally:
+            self.stop()
+        if status is not None:
+            status(self.status_line())
+        if self.error is not None:
+            raise self.error
+
+    # ------------------------------------------------------------------ statistics
+    def stats(self) -> dict:
+        """Counts and timing statistics so far (recent window for the percentiles)."""
+        iv = self.intervals.values()
+        ages = self.ages.values()
+        ft = self.frame_times.values()
+        end = self._t_render_end if self._t_render_end is not None else self.clock.now()
+        elapsed = (end - self.t0) if self.t0 is not None else 0.0
+        cam = (ft.size - 1) / (ft.max() - ft.min()) if ft.size > 1 and ft.max() > ft.min() \
+            else float("nan")
+        return {
+            "elapsed": elapsed,
+            "frames": self.frames,
+            "status": dict(self.status_counts),
+            "camera_fps": float(cam),
+            "sent": self.sent,
+            "missed_deadlines": self.missed_deadlines,
+            "waiting": self.waiting,
+            "held": self.held,
+            "render_hz": float(1.0 / np.mean(iv)) if iv.size else float("nan"),
+            "interval_p50": _percentile(iv, 50),
+            "interval_p99": _percentile(iv, 99),
+            "interval_max": float(iv.max()) if iv.size else float("nan"),
+            "age_p50": _percentile(ages, 50),
+            "age_p99": _percentile(ages, 99),
+            "horizon": float(self._config_used.horizon),
+        }
+
+    def status_line(self) -> str:
+        """One line: camera FPS, pose-status counts, render rate and jitter, sample age."""
+        s = self.stats()
+        counts = " ".join(f"{k} {v}" for k, v in sorted(s["status"].items()))
+        period = 1.0 / self.rate
+        return (f"t {s['elapsed']:6.1f} s | camera {s['camera_fps']:5.1f} fps | poses: "
+                f"{counts or '-'} | render {s['render_hz']:6.1f} Hz, jitter p50 "
+                f"{1e3 * abs(s['interval_p50'] - period):.2f} ms p99 "
+                f"{1e3 * abs(s['interval_p99'] - period):.2f} ms, missed "
+                f"{s['missed_deadlines']} | age p50 {1e3 * s['age_p50']:.0f} ms")
+
+
+def _renice(increment: int | None) -> None:
+    """Change the calling thread's nice value by ``increment`` (Linux; errors ignored)."""
+    if not increment or not hasattr(os, "setpriority") or not hasattr(threading, "get_native_id"):
+        return
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + increment)
+    except OSError:
+        pass
+
+
+def _set_fifo() -> bool:
+    """Put the calling thread under ``SCHED_FIFO`` (lowest real-time priority); True if done."""
+    if not hasattr(os, "sched_setscheduler") or not hasattr(threading, "get_native_id"):
+        return False
+    try:
+        os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO, os.sched_param(1))
+    except OSError:
+        return False
+    return True
+
+
+def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate the 3-vector ``v`` by the unit quaternion ``q`` (wxyz)."""
+    w, u = q[0], q[1:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)

@@ -1,0 +1,147 @@
+"""``phjax live`` end to end over loopback: the acceptance run, bad input, signals."""
+
+from __future__ import annotations
+
+import signal
+import struct
+import subprocess
+import sys
+import threading
+
+import jax
+import numpy as np
+import pytest
+from live_helpers import UdpListener, angle_steps, listener, model_cache, smooth_motion  # noqa: F401
+
+from phjax.cli import main
+from phjax.io import Trajectory, read_tum, write_tum
+from phjax.live import opentrack_values
+
+
+@pytest.fixture
+def cli_jax_config():
+    """The CLI turns JAX's asynchronous CPU dispatch off; restore it for the other tests."""
+    old = jax.config.read("jax_cpu_enable_async_dispatch")
+    yield
+    jax.config.update("jax_cpu_enable_async_dispatch", old)
+
+
+def _gt_opentrack(times):
+    """opentrack values of the synthetic head's ground truth relative to its first frame
+    (the RGB-D front-end's reference), at the frames nearest to ``times``."""
+    from phjax._np_quat import np_qconj, np_qmul
+    from phjax.vision import open_rgbd
+
+    seq = open_rgbd("synthetic:240")
+    gt = seq.ground_truth
+    rel = np_qmul(gt.quaternions, np_qconj(gt.quaternions[:1]))
+    i = np.clip(np.round(np.asarray(times) * 30.0).astype(int), 0, len(seq) - 1)
+    return np.array([opentrack_values(np.zeros(3), q)[3:] for q in rel[i]])
+
+
+@pytest.mark.slow
+def test_acceptance_synthetic_opentrack(listener, model_cache, tmp_path, cli_jax_config, capsys):  # noqa: F811
+    """phjax live synthetic:240 --output opentrack://127.0.0.1:PORT --rate 120 --duration 6."""
+    log = tmp_path / "sent.tum"
+    rate = 120.0
+    rc = main(["live", "synthetic:240", "--output", f"opentrack://127.0.0.1:{listener.port}",
+               "--rate", str(rate), "--duration", "6", "--log", str(log), "--model-dir",
+               str(model_cache), "--status-interval", "2", "--realtime"])
+    listener.close()
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    arrival = np.array([a for a, _ in listener.packets])
+    sizes = {len(d) for _, d in listener.packets}
+    assert sizes == {48}
+    vals = np.array([struct.unpack("<6d", d) for _, d in listener.packets])
+    assert np.isfinite(vals).all()
+    n = len(vals)
+    span = arrival[-1] - arrival[0]
+    iv = np.diff(arrival)
+    sent = read_tum(log)
+    print(f"\n{n} datagrams, {(n - 1) / span:.1f} Hz over {span:.2f} s; intervals p50 "
+          f"{1e3 * np.median(iv):.2f} ms p99 {1e3 * np.percentile(iv, 99):.2f} ms max "
+          f"{1e3 * iv.max():.2f} ms")
+    print(err.strip().splitlines()[-2:])
+    # exactly what was logged was sent (log and datagrams in the same order)
+    assert sent.num_samples == n
+    expect = np.array([opentrack_values(p, q) for p, q in zip(sent.positions, sent.quaternions)])
+    np.testing.assert_allclose(vals, expect, rtol=0, atol=1e-9)
+    # rate and jitter
+    assert 0.9 * rate <= (n - 1) / span <= 1.1 * rate
+    assert np.percentile(iv, 99) <= 3.0 / rate
+    # smoothness: no step above 1 cm or 2 degrees between consecutive datagrams
+    steps_cm = np.abs(np.diff(vals[:, :3], axis=0)).max()
+    steps_deg = angle_steps(vals[:, 3:]).max()
+    print(f"largest step {steps_cm:.3f} cm, {steps_deg:.3f} deg")
+    assert steps_cm <= 1.0 and steps_deg <= 2.0
+    # the head's turns are visible: each angle follows the ground truth
+    truth = _gt_opentrack(sent.times)
+    for j, name in enumerate(("yaw", "pitch", "roll")):
+        got, ref = vals[:, 3 + j], truth[:, j]
+        corr = np.corrcoef(got, ref)[0, 1]
+        print(f"{name}: range {np.ptp(got):.2f} deg (truth {np.ptp(ref):.2f}), corr {corr:.3f}")
+        assert np.ptp(got) > 0.5 * np.ptp(ref) and corr > 0.7
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["live", "nonsense:1"], "unknown source"),
+    (["live", "poses:/nonexistent/file.tum"], "not found"),
+    (["live", "webcam:x"], "bad webcam index"),
+    (["live", "synthetic:abc"], "synthetic"),
+    (["live", "/nonexistent/video.avi"], "unknown source"),
+    (["live", "poses:{poses}", "--output", "udp://127.0.0.1:5"], "unknown output"),
+    (["live", "poses:{poses}", "--output", "opentrack://127.0.0.1:99999"], "port"),
+    (["live", "poses:{poses}", "--output", "opentrack://:4242"], "missing host"),
+    (["live", "poses:{poses}", "--output", "osc://no-such-host.invalid:9000"], "resolve"),
+    (["live", "poses:{poses}", "--output", "opentrack://127.0.0.1:4242?from={busy}"],
+     "cannot use local port"),
+    (["live", "poses:{poses}", "--log", "/nonexistent/dir/x.tum"], "cannot write the log"),
+    (["live", "poses:{poses}", "--rate", "0"], "rate"),
+])
+def test_bad_input_exits_2(argv, message, tmp_path, capsys):
+    poses = tmp_path / "p.tum"
+    write_tum(poses, Trajectory(*smooth_motion(10, 30.0)))
+    import socket
+
+    busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    busy.bind(("", 0))
+    try:
+        args = [a.format(poses=poses, busy=busy.getsockname()[1]) for a in argv]
+        assert main(args) == 2
+    finally:
+        busy.close()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("phjax live: error:") and message in err[0], err
+
+
+def test_bad_input_process_has_no_traceback(tmp_path):
+    """As a process: exit code 2, one line on stderr, no traceback."""
+    r = subprocess.run([sys.executable, "-m", "phjax", "live", "realsense:123",
+                        "--output", "opentrack://127.0.0.1:4242"], capture_output=True,
+                       text=True, timeout=120, check=False)
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith("phjax")]
+    assert len(lines) == 1 and "realsense" in lines[0].lower(), r.stderr
+    assert "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_stops_cleanly(sig, listener, tmp_path, cli_jax_config, capsys):  # noqa: F811
+    """SIGTERM / Ctrl-C: exit 0, threads joined, the log flushed and complete."""
+    poses = tmp_path / "p.tum"
+    write_tum(poses, Trajectory(*smooth_motion(3000, 30.0)))
+    log = tmp_path / "sent.tum"
+    before = {t.name for t in threading.enumerate()}
+    timer = threading.Timer(2.0, signal.raise_signal, (sig,))
+    timer.start()
+    rc = main(["live", f"poses:{poses}", "--output", f"opentrack://127.0.0.1:{listener.port}",
+               "--log", str(log), "--rate", "120", "--quiet"])
+    timer.join()
+    listener.close()
+    assert rc == 0
+    assert not [t for t in threading.enumerate() if t.name.startswith("phjax-live")]
+    assert {t.name for t in threading.enumerate()} <= before | {"Thread-1"}
+    sent = read_tum(log)
+    assert sent.num_samples == len(listener.packets) > 20
+    assert "sent" in capsys.readouterr().err
