@@ -33,7 +33,7 @@ from collections.abc import Callable, Sequence
 
 import jax
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike
 
 __all__ = [
@@ -135,12 +135,15 @@ def batch_mesh(devices: Sequence | None = None, axis_name: str = BATCH_AXIS) -> 
         axis_name: name of the mesh axis (default ``"batch"``).
 
     Returns:
-        A :class:`jax.sharding.Mesh` of shape ``(len(devices),)``.
+        A :class:`jax.sharding.Mesh` of shape ``(len(devices),)`` with an ``Auto`` axis (JAX
+        inserts the communication that ordinary operations on sharded results need).
     """
     devices = jax.devices() if devices is None else list(devices)
     if len(devices) == 0:
         raise ValueError("batch_mesh needs at least one device")
-    return jax.make_mesh((len(devices),), (axis_name,), devices=devices)
+    # Auto (not Explicit) axis: ordinary indexing and reductions of sharded results just work
+    return jax.make_mesh((len(devices),), (axis_name,), axis_types=(AxisType.Auto,),
+                         devices=devices)
 
 
 def batch_sharding(mesh: Mesh | None = None, axis_name: str | None = None) -> NamedSharding:
