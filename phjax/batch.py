@@ -224,7 +224,8 @@ def _is_batch_sharded(leaf, sharding: NamedSharding) -> bool:
 
 
 @functools.lru_cache(maxsize=64)
-def _shard_mapped(fn: Callable, mesh: Mesh, axis, in_tree, batched: tuple, static: tuple):
+def _shard_mapped(fn: Callable, mesh: Mesh, axis, in_tree, batched: tuple, static: tuple,
+                  donate: tuple = ()):
     """``jax.jit(jax.shard_map(fn))`` with batched leaves split along ``axis``, the rest
     replicated, every output leaf split along ``axis`` (cached: one jitted function per
     layout, one compiled program per shape)."""
@@ -236,22 +237,24 @@ def _shard_mapped(fn: Callable, mesh: Mesh, axis, in_tree, batched: tuple, stati
         return fn(*args)
 
     return jax.jit(jax.shard_map(flat_fn, mesh=mesh, in_specs=tuple(in_specs), out_specs=spec,
-                                 check_vma=False))
+                                 check_vma=False), donate_argnums=donate, keep_unused=bool(donate))
 
 
-def _sharded_function(fn: Callable, sharding: NamedSharding, args: tuple, static: dict):
+def _sharded_function(fn: Callable, sharding: NamedSharding, args: tuple, static: dict,
+                      donate: tuple = ()):
     """The jitted ``shard_map`` of ``fn`` for ``args``: array leaves sharded along
     ``sharding``'s batch axis are split, every other leaf is replicated (it must be a JAX type:
     arrays, numbers, ``None``); every output leaf keeps the batch axis first and comes back
     split the same way. ``static`` values must be hashable and ``fn`` a module-level function
-    (both key the cache). Call the result with ``*args``."""
+    (both key the cache); ``donate``: positions of ``args`` whose buffers the call may reuse.
+    Call the result with ``*args``."""
     leaves, tree = jax.tree.flatten(args)
     batched = tuple(_is_batch_sharded(x, sharding) for x in leaves)
     for x, b in zip(leaves, batched):
         if b:
             _check_divisible(x.shape, _n_shards(sharding), "sharded batch")
     return _shard_mapped(fn, sharding.mesh, sharding.spec[0], tree, batched,
-                         tuple(sorted(static.items())))
+                         tuple(sorted(static.items())), tuple(donate))
 
 
 def run_sharded(fn: Callable, sharding: NamedSharding, *args, **static):
