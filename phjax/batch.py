@@ -38,13 +38,13 @@ from jaxtyping import ArrayLike
 
 __all__ = [
     "BATCH_AXIS",
-    "pad_recordings",
-    "recording_lengths",
-    "unpad",
     "batch_mesh",
     "batch_sharding",
+    "pad_recordings",
+    "recording_lengths",
     "shard_batch",
     "shard_local_batch",
+    "unpad",
 ]
 
 #: Name of the mesh axis along which :func:`batch_mesh` / :func:`shard_batch` split a batch.

@@ -15,7 +15,6 @@ See ``benchmarks/bench_sampling.py`` for their throughput against a same-size me
 from __future__ import annotations
 
 from collections.abc import Iterator
-from functools import partial
 from typing import Literal
 
 import jax
@@ -25,7 +24,7 @@ from jaxtyping import Array, Float
 from ..batch import _leading_sharding, _sharded_function
 from .ph_quintic import PHQuintic
 
-__all__ = ["sample", "sample_into", "sample_chunks"]
+__all__ = ["sample", "sample_chunks", "sample_into"]
 
 _BY = ("time", "arclength")
 
@@ -74,7 +73,7 @@ def sample(
         ``(t, points)`` with shapes ``(*batch, n)`` and ``(*batch, n, 3)``.
     """
     _check_by(by)
-    static = dict(n=int(n), by=by)
+    static = {"n": int(n), "by": by}
     sharding = _leading_sharding(curves) if curves.batch_shape else None
     if sharding is not None:
         return _sharded_function(_sample_impl, sharding, (curves,), static)(curves)
@@ -136,7 +135,7 @@ def sample_into(
     sharding = _leading_sharding((curves, points, t)) if b else None
     if sharding is not None:
         args = (curves, points, t)
-        return _sharded_function(_into_impl, sharding, args, dict(by=by), donate=(1, 2))(*args)
+        return _sharded_function(_into_impl, sharding, args, {"by": by}, donate=(1, 2))(*args)
     return _into_jit(curves, points, t, by=by)
 
 

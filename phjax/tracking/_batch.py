@@ -116,7 +116,7 @@ def run_batch(kind, config, times, positions, quaternions, render_times, dtype):
     dtype = jnp.dtype(jnp.zeros((), float).dtype if dtype is None else dtype).name
     args = (config, times, positions, quaternions, render_times)
     sharding = _leading_sharding(args[1:])
-    static = dict(kind=kind, dtype=dtype)
+    static = {"kind": kind, "dtype": dtype}
     fn = _local_jit if sharding is None else _sharded_function(_local, sharding, args, static)
     key = (jax.tree.structure(config), kind, dtype,
            tuple((a.shape, a.dtype) for a in args[1:]))
