@@ -21,6 +21,19 @@ from ..batch import _leading_sharding, _sharded_function
 _PAD_STEP = 1.0
 
 
+def _lost_padding_frames(times, positions, quaternions):
+    """One recording's padding frames (NaN times, trailing) as lost frames (NaN measurements)
+    ``_PAD_STEP`` apart after its last real frame (finite values and gradients)."""
+    valid = jnp.isfinite(times)
+    n_valid = jnp.sum(valid)
+    t_last = jnp.where(n_valid > 0, times[jnp.maximum(n_valid - 1, 0)], 0)
+    k = jnp.arange(times.shape[0]) - n_valid + 1
+    t = jnp.where(valid, times, t_last + _PAD_STEP * k)
+    nan = jnp.asarray(jnp.nan, positions.dtype)
+    return (t, jnp.where(valid[:, None], positions, nan),
+            jnp.where(valid[:, None], quaternions, nan))
+
+
 def _fill_padding(times, positions, quaternions, dtype):
     """One padded recording as the core expects it: times relative to the first frame, the
     padding frames (NaN time) turned into lost frames ``_PAD_STEP`` apart after the last real
