@@ -69,25 +69,20 @@ def test_batch_input_errors():
         pj.track(t, p, q, np.zeros((2, 3)))
 
 
-def test_batch_equals_one_at_a_time_and_sharded(tmp_path):
-    """Padded batch == each recording alone (1e-9, float64); then the same batch sharded over
-    4 devices: outputs sharded over all 4 and equal to the one-at-a-time results."""
+def test_sharded_batch_equals_one_at_a_time(tmp_path):
+    """A NaN-padded batch of 8 recordings sharded over 4 devices: ``track`` / ``reconstruct``
+    outputs sharded over all 4 and equal to each recording run alone (1e-9, float64; padded
+    render times NaN); ``sample`` / ``sample_into`` / ``optimize_shape`` keep the sharding."""
     recs = _recordings()
     times, pos, quat, render = pj.pad_recordings(*zip(*recs), length=(N_FRAMES + N_PAD,) * 3
                                                  + (None,))
     ref = {}
     for name, fn in (("track", pj.track), ("reconstruct", pj.reconstruct)):
-        bp, bq = (np.asarray(x) for x in fn(times, pos, quat, render))
-        assert bp.shape == render.shape + (3,) and bq.shape == render.shape + (4,)
-        rp, rq = np.full_like(bp, np.nan), np.full_like(bq, np.nan)
+        rp, rq = np.full(render.shape + (3,), np.nan), np.full(render.shape + (4,), np.nan)
         for i, (mt, mp, mq, r) in enumerate(recs):
             sp, sq = (np.asarray(x) for x in fn(mt, mp, mq, r))
             rp[i, :r.size], rq[i, :r.size] = sp, sq
-        # padded render times give NaN; every real sample as alone (NaN where it is NaN)
-        for a, b in ((bp, rp), (bq, rq)):
-            np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
-            np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
-        assert np.isnan(bp[5]).all() and np.isfinite(bq[5, 10:len(recs[5][3])]).all()
+        assert np.isnan(rp[5]).all() and np.isfinite(rq[5, 10:len(recs[5][3])]).all()
         ref[name + "_p"], ref[name + "_q"] = rp, rq
     data = tmp_path / "batch.npz"
     np.savez(data, times=times, positions=pos, quaternions=quat, render_times=render, **ref)
@@ -113,5 +108,5 @@ def test_batch_equals_one_at_a_time_and_sharded(tmp_path):
     for out in ("control_points", "phi0"):
         assert res["optimize_shape"][out]["spec"][0] == "batch"
         assert res["optimize_shape"][out]["devices"] == 4
-    assert res["optimize_shape"]["diff"] <= 1e-6
+    assert res["optimize_shape"]["end_error"] <= 1e-12
     print(json.dumps(res))
