@@ -69,6 +69,7 @@ def test_batch_input_errors():
         pj.track(t, p, q, np.zeros((2, 3)))
 
 
+@pytest.mark.slow  # about 4 CPU minutes: six compilations of the tracker scan and the shape solver
 def test_sharded_batch_equals_one_at_a_time(tmp_path):
     """A NaN-padded batch of 8 recordings sharded over 4 devices: ``track`` / ``reconstruct``
     outputs sharded over all 4 and equal to each recording run alone (1e-9, float64; padded
@@ -92,6 +93,7 @@ def test_sharded_batch_equals_one_at_a_time(tmp_path):
                           capture_output=True, text=True, timeout=600, check=False)
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads(proc.stdout.strip().splitlines()[-1])
+    print(json.dumps(res))
     assert res["num_devices"] == 4
     for name in ("track", "reconstruct"):
         for out, dim in (("position", 3), ("quaternion", 4)):
@@ -104,9 +106,8 @@ def test_sharded_batch_equals_one_at_a_time(tmp_path):
             assert res[name][out]["spec"][0] == "batch" and res[name][out]["devices"] == 4
         assert res[name]["diff"] <= 1e-12
     assert res["sample_into"]["points"]["devices"] == 4 and res["sample_into"]["donated"]
-    assert res["sample_into"]["diff"] == 0.0
+    assert res["sample_into"]["diff"] <= 1e-12
     for out in ("control_points", "phi0"):
         assert res["optimize_shape"][out]["spec"][0] == "batch"
         assert res["optimize_shape"][out]["devices"] == 4
     assert res["optimize_shape"]["end_error"] <= 1e-12
-    print(json.dumps(res))
