@@ -12,11 +12,13 @@ the parts, in the order the data flows:
   quaternion curves.
 * :mod:`phjax.evaluation`: metrics and the comparison with baselines.
 * :mod:`phjax.live`: live tracking (camera in, smooth poses out to opentrack / OSC).
+* :mod:`phjax.batch`: batches of recordings (NaN padding) and sharding them over devices.
 * :mod:`phjax.quaternion` (rotation algebra), :mod:`phjax.io` (trajectory files),
   :mod:`phjax.datasets` (the shared recordings), :mod:`phjax.cli` (the command line).
 """
 
-from . import curves, evaluation, io, live, motion, quaternion, tracking, vision
+from . import batch, curves, evaluation, io, live, motion, quaternion, tracking, vision
+from .batch import batch_mesh, pad_recordings, shard_batch, shard_local_batch, unpad
 from .curves import (
     FrameKind,
     PHQuintic,
@@ -32,6 +34,8 @@ from .curves import (
     ph_spline,
     quaternion_hermite,
     sample,
+    sample_chunks,
+    sample_into,
 )
 from .motion import SensorModel, simulate_measurements, synthetic_head_motion
 from .quaternion import (
@@ -117,6 +121,12 @@ from .vision import face_detection, features, head_pose, rgbd_io
 __version__ = "0.1.0"
 
 __all__ = [
+    "batch",
+    "batch_mesh",
+    "pad_recordings",
+    "shard_batch",
+    "shard_local_batch",
+    "unpad",
     "curves",
     "evaluation",
     "live",
@@ -202,6 +212,8 @@ __all__ = [
     "hermite_quintic",
     "near_optimal_angles",
     "sample",
+    "sample_chunks",
+    "sample_into",
     "quat_conj",
     "quat_exp",
     "quat_from_matrix",

@@ -2,7 +2,8 @@
 
 * :mod:`~phjax.curves.ph_quintic`: first-order Hermite PH quintics (``hermite_quintic``,
   ``PHQuintic``): closed-form arc length, curvature, torsion, bending energy and frames.
-* :mod:`~phjax.curves.sampling`: batched sampling (uniform in parameter or arc length).
+* :mod:`~phjax.curves.sampling`: batched sampling (uniform in parameter or arc length), into
+  donated buffers, in chunks.
 * :mod:`~phjax.curves.shape`: free-angle optimisation under curvature / torsion limits.
 * :mod:`~phjax.curves.ph_spline`: the offline C2 PH quintic spline.
 * :mod:`~phjax.curves.orientation`: C1 quaternion Hermite curves for orientation.
@@ -11,7 +12,7 @@
 from .orientation import QuaternionHermite, quaternion_hermite
 from .ph_quintic import FrameKind, PHQuintic, hermite_quintic, near_optimal_angles
 from .ph_spline import SplineSolution, SplineStatus, ph_spline
-from .sampling import sample
+from .sampling import sample, sample_chunks, sample_into
 from .shape import Objective, ShapeSolution, ShapeStatus, grid_search_shape, optimize_shape
 
 __all__ = [
@@ -30,4 +31,6 @@ __all__ = [
     "ph_spline",
     "quaternion_hermite",
     "sample",
+    "sample_chunks",
+    "sample_into",
 ]

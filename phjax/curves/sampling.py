@@ -1,24 +1,60 @@
-"""Batched sampling of PH quintic curves in one fused, jitted call."""
+"""Batched sampling of PH quintic curves in one fused, jitted call.
+
+* :func:`sample` returns fresh arrays. A batch sharded along axis 0 over a device mesh
+  (:func:`phjax.batch.shard_batch`) is sampled on each device's part, the outputs sharded the
+  same way.
+* :func:`sample_into` writes into caller-provided buffers that it **donates** (the outputs reuse
+  their memory): in a loop that samples batch after batch, no fresh output memory is touched,
+  which matters on a CPU where every fresh page of a large output costs a page fault.
+* :func:`sample_chunks` walks a batch too large to sample at once in chunks of fixed shape
+  (one compiled program), reusing a small ring of donated buffers.
+
+See ``benchmarks/bench_sampling.py`` for their throughput against a same-size memory fill.
+"""
 
 from __future__ import annotations
 
-from functools import partial
+from collections.abc import Iterator
 from typing import Literal
 
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ..batch import _leading_sharding, _sharded_function
 from .ph_quintic import PHQuintic
 
-__all__ = ["sample"]
+__all__ = ["sample", "sample_chunks", "sample_into"]
+
+_BY = ("time", "arclength")
 
 
-@partial(jax.jit, static_argnames=("n", "by"))
+def _check_by(by):
+    if by not in _BY:
+        raise ValueError(f"by must be 'time' or 'arclength', got {by!r}")
+
+
+def _sample_impl(curves: PHQuintic, *, n: int, by: str, with_t: bool = True):
+    """Parameters (``None`` unless ``with_t``) and points of every curve at ``n`` samples."""
+    u = jnp.linspace(0, 1, n, dtype=curves.dtype)
+    if by == "time":
+        t = jnp.broadcast_to(u, curves.batch_shape + (n,)) if with_t else None
+        return t, curves.position(u)
+    t = curves.parameter_at_length(curves.length[..., None] * u)  # (*batch, n): per curve
+    return (t if with_t else None), curves.position(t)
+
+
+_sample_jit = jax.jit(_sample_impl, static_argnames=("n", "by", "with_t"))
+
+
 def sample(
     curves: PHQuintic, n: int, by: Literal["time", "arclength"] = "time"
 ) -> tuple[Float[Array, "*batch n"], Float[Array, "*batch n 3"]]:
     """Sample every curve of a batch at ``n`` points.
+
+    A batch whose arrays are sharded along axis 0 over a device mesh
+    (:func:`phjax.batch.shard_batch`) runs on each device's part; the outputs are sharded the
+    same way.
 
     Arguments:
         curves: a (batch of) :class:`PHQuintic`.
@@ -32,11 +68,131 @@ def sample(
         ``curves.curvature(t)`` has shape ``(*batch, n)``, ``curves.frame(t)``
         ``(*batch, n, 3, 3)``.
     """
-    if by not in ("time", "arclength"):
-        raise ValueError(f"by must be 'time' or 'arclength', got {by!r}")
-    u = jnp.linspace(0, 1, n, dtype=curves.dtype)
-    if by == "time":
-        t = jnp.broadcast_to(u, curves.batch_shape + (n,))
-        return t, curves.position(u)
-    t = curves.parameter_at_length(curves.length[..., None] * u)  # (*batch, n): per curve
-    return t, curves.position(t)
+    _check_by(by)
+    static = {"n": int(n), "by": by}
+    sharding = _leading_sharding(curves) if curves.batch_shape else None
+    if sharding is not None:
+        return _sharded_function(_sample_impl, sharding, (curves,), static)(curves)
+    return _sample_jit(curves, **static)
+
+
+def _into_impl(curves, points, t, *, by):
+    tt, pts = _sample_impl(curves, n=points.shape[-2], by=by, with_t=t is not None)
+    return (None if t is None else tt.astype(t.dtype)), pts.astype(points.dtype)
+
+
+# keep_unused: the buffers are only donated, never read; an unused argument would be pruned
+# and its donation dropped
+_into_jit = jax.jit(_into_impl, static_argnames=("by",), donate_argnums=(1, 2), keep_unused=True)
+
+
+def _check_buffer(name, buf, shape):
+    if not isinstance(buf, jax.Array) or buf.shape != shape:
+        raise ValueError(f"{name} must be a jax.Array of shape {shape}, got "
+                         f"{type(buf).__name__} {getattr(buf, 'shape', None)}")
+    if not jnp.issubdtype(buf.dtype, jnp.floating):
+        raise ValueError(f"{name} must be floating point, got {buf.dtype}")
+
+
+def sample_into(
+    curves: PHQuintic,
+    points: Float[Array, "*batch n 3"],
+    t: Float[Array, "*batch n"] | None = None,
+    *,
+    by: Literal["time", "arclength"] = "time",
+) -> tuple[Float[Array, "*batch n"] | None, Float[Array, "*batch n 3"]]:
+    """:func:`sample` written into caller-provided buffers, which are donated.
+
+    The buffers' memory is reused for the outputs (``jax.jit(..., donate_argnums=...)``), so
+    a loop ``t, pts = sample_into(curves_k, pts, t)`` samples batch after batch without
+    touching fresh memory; their contents are ignored. The buffers passed in are invalid
+    afterwards (JAX raises on any use): keep the returned arrays. Buffers sharded along axis 0
+    like the curves (:func:`phjax.batch.shard_batch`) are written on each device. Where a
+    backend cannot reuse a buffer, JAX warns and the call still returns correct values.
+
+    Arguments:
+        curves: a (batch of) :class:`PHQuintic`.
+        points: buffer ``(*batch, n, 3)``; ``n`` is the number of samples per curve.
+        t: optional buffer ``(*batch, n)`` for the parameters (``None``: not computed).
+        by: ``"time"`` or ``"arclength"``, as in :func:`sample`.
+
+    Returns:
+        ``(t, points)`` in the buffers' dtypes (``t`` is ``None`` when no buffer was given),
+        equal to :func:`sample`'s.
+    """
+    _check_by(by)
+    b = curves.batch_shape
+    if points.ndim < 2:
+        raise ValueError(f"points must have shape (*batch, n, 3), got {points.shape}")
+    n = points.shape[-2]
+    _check_buffer("points", points, b + (n, 3))
+    if t is not None:
+        _check_buffer("t", t, b + (n,))
+    sharding = _leading_sharding((curves, points, t)) if b else None
+    if sharding is not None:
+        args = (curves, points, t)
+        return _sharded_function(_into_impl, sharding, args, {"by": by}, donate=(1, 2))(*args)
+    return _into_jit(curves, points, t, by=by)
+
+
+def _chunk_impl(curves, start, points, t, *, by):
+    part = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, points.shape[0], 0), curves)
+    return _into_impl(part, points, t, by=by)
+
+
+_chunk_jit = jax.jit(_chunk_impl, static_argnames=("by",), donate_argnums=(2, 3), keep_unused=True)
+
+
+def sample_chunks(
+    curves: PHQuintic,
+    n: int,
+    chunk: int,
+    *,
+    by: Literal["time", "arclength"] = "time",
+    parameters: bool = False,
+    buffers: int = 2,
+    dtype=None,
+) -> Iterator[tuple[int, Float[Array, " c n"] | None, Float[Array, "c n 3"]]]:
+    """Sample a huge batch chunk by chunk into a ring of reused (donated) buffers.
+
+    Every chunk has the same shape, so one program is compiled; the curves are sliced inside
+    it. The last chunk, when ``chunk`` does not divide the batch, is sampled as the final full
+    chunk of the batch and the rows already yielded are cut off (a slice of the buffer).
+
+    The arrays yielded at step ``k`` live in the buffer that step ``k + buffers`` writes into
+    (donated again): consume them (copy to the host, reduce, write to disk) before advancing
+    the generator ``buffers`` times; a later access raises JAX's "Array has been deleted".
+
+    Arguments:
+        curves: a batch of :class:`PHQuintic` (flattened over its batch axes).
+        n: samples per curve.
+        chunk: curves per chunk (at most the batch size is used).
+        by: ``"time"`` or ``"arclength"``, as in :func:`sample`.
+        parameters: also yield the parameters ``t``.
+        buffers: size of the buffer ring (>= 1).
+        dtype: dtype of the buffers (default the curves' dtype).
+
+    Yields:
+        ``(start, t, points)``: the samples of flattened curves ``start .. start + len(points)``
+        (``t`` is ``None`` unless ``parameters``), equal to :func:`sample`'s rows.
+    """
+    _check_by(by)
+    if int(n) < 1 or int(chunk) < 1 or int(buffers) < 1:
+        raise ValueError(f"n, chunk and buffers must be >= 1, got {n}, {chunk}, {buffers}")
+    b = curves.batch_shape
+    flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(b):]), curves)
+    total = flat.control_points.shape[0]
+    if total == 0:
+        return
+    chunk = min(int(chunk), total)
+    dtype = curves.dtype if dtype is None else dtype
+    ring = [(jnp.zeros((chunk, n, 3), dtype),
+             jnp.zeros((chunk, n), dtype) if parameters else None) for _ in range(int(buffers))]
+    for k, start in enumerate(range(0, total, chunk)):
+        s = min(start, total - chunk)
+        pts, t = ring[k % len(ring)]
+        t, pts = _chunk_jit(flat, s, pts, t, by=by)
+        ring[k % len(ring)] = (pts, t)
+        if s != start:  # final partial chunk: drop the rows of the previous chunk
+            pts, t = pts[start - s:], None if t is None else t[start - s:]
+        yield start, t, pts

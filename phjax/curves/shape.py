@@ -903,7 +903,8 @@ def _solve_compiled(st: _Settings, *args):
     leaves = jax.tree.leaves(args)
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
         return _solve_jit(st, *args)
-    key = (st, args[-1] is None, tuple((x.shape, x.dtype) for x in leaves))
+    key = (st, args[-1] is None,
+           tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves))
     exe = _SOLVER_CACHE.get(key)
     if exe is None:
         exe = _solve_jit.lower(st, *args).compile()
@@ -1085,6 +1086,10 @@ def optimize_shape(
     Returns:
         ``(curves, solution)``: the optimal :class:`PHQuintic` (batch shape ``batch``) and the
         :class:`ShapeSolution` record.
+
+    Sharding: inputs sharded along axis 0 over a device mesh (:func:`phjax.batch.shard_batch`;
+    shard every batched input) are solved on each device's part and the outputs come back
+    sharded the same way; unsharded inputs (e.g. scalar bounds) are replicated.
 
     Raises:
         ValueError: (outside ``jit``) for bad shapes, unknown objectives, non-positive bounds or

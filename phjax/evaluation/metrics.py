@@ -3,6 +3,13 @@
 All metrics are evaluated in **float64 NumPy**, independently of JAX's x64 flag: third derivatives
 by finite differences are far below float32 resolution. Inputs may be NumPy or JAX arrays.
 
+Batches: every metric also takes a batch of recordings, its array arguments with the same
+leading axes ``B`` (``times (*B, n)``, ``est (*B, n, 3)``, ...), NaN-padded to a common length
+(padding rule of :mod:`phjax.batch`: a NaN time marks a padding row, which is cut off;
+``boundary_times`` may be shared ``(b,)`` or per recording ``(*B, b)`` with NaN padding). Each
+recording is evaluated alone (a loop in NumPy); a :class:`Metric` / :class:`Latency` then holds
+arrays of shape ``B`` and :func:`evaluate` returns a dict of such arrays.
+
 NaN handling: every metric ignores samples (or finite-difference windows) that touch a NaN row of
 either input and reports how many were used. A metric with nothing to evaluate returns
 ``Metric(nan, 0)`` instead of raising, so orientation-only data (NaN positions) yields NaN
@@ -15,6 +22,8 @@ sample times, so no uniform grid is assumed; times must be strictly increasing.
 
 from __future__ import annotations
 
+import functools
+import inspect
 import math
 from typing import NamedTuple
 
@@ -149,10 +158,83 @@ def _span_velocity(t: np.ndarray, x: np.ndarray, span: int, kind: str):
 
 
 # ----------------------------------------------------------------------------------------------
+# batches of recordings
+# ----------------------------------------------------------------------------------------------
+
+#: core rank of each kind of batched argument: per-frame rows, frame times, a set of times
+_CORE = {"rows": 2, "times": 1, "set": 1}
+
+
+def _stack_results(results, batch):
+    first = results[0]
+    if isinstance(first, dict):
+        return {k: np.array([r[k] for r in results]).reshape(batch) for k in first}
+    return type(first)(*(np.array(v).reshape(batch) for v in zip(*results)))
+
+
+def _over_recordings(**kinds: str):
+    """Let a metric take NaN-padded batches of recordings (see the module docs).
+
+    ``kinds`` maps argument names to ``"rows"`` (``(*B, n, d)``), ``"times"`` (``(*B, n)``: a
+    NaN time marks a padding row of every ``rows`` argument) or ``"set"`` (``(b,)`` shared or
+    ``(*B, b)``, NaN entries dropped). The first named argument decides whether the call is
+    batched; then the metric runs once per recording and the results are stacked.
+    """
+
+    def wrap(fn):
+        sig = inspect.signature(fn)
+        names = list(kinds)
+
+        @functools.wraps(fn)
+        def batched(*args, **kwargs):
+            bound = sig.bind(*args, **kwargs)
+            first = np.asarray(bound.arguments[names[0]])
+            extra = first.ndim - _CORE[kinds[names[0]]]
+            if extra <= 0:
+                return fn(*args, **kwargs)
+            batch = first.shape[:extra]
+            r = int(np.prod(batch))
+            flat = {}
+            for name in names:
+                v = bound.arguments.get(name)
+                if v is None:
+                    continue
+                v = np.asarray(v, np.float64)
+                if v.shape[:extra] == batch and v.ndim == _CORE[kinds[name]] + extra:
+                    flat[name] = v.reshape((r,) + v.shape[extra:])
+                elif kinds[name] == "set" and v.ndim == 1:
+                    flat[name] = np.broadcast_to(v, (r,) + v.shape)
+                else:
+                    raise ValueError(f"{name}: shape {v.shape} does not match the batch shape "
+                                     f"{batch}")
+            time_name = next((k for k in names if kinds[k] == "times"), None)
+            results = []
+            for i in range(r):
+                keep = None if time_name is None else np.isfinite(flat[time_name][i])
+                if keep is not None and not np.all(keep[:keep.sum()]):
+                    raise ValueError(f"recording {i}: padding (NaN times) must come after "
+                                     "every real row")
+                for name, v in flat.items():
+                    x = v[i]
+                    if kinds[name] == "set":
+                        x = x[np.isfinite(x)]
+                    elif keep is not None:
+                        x = x[keep]
+                    bound.arguments[name] = x
+                results.append(fn(*bound.args, **bound.kwargs))
+            return _stack_results(results, batch)
+
+        return batched
+
+    return wrap
+
+
+# ----------------------------------------------------------------------------------------------
 # accuracy
 # ----------------------------------------------------------------------------------------------
 
 
+@_over_recordings(est="rows", gt="rows")
 def position_rmse(est: Float[ArrayLike, "n 3"], gt: Float[ArrayLike, "n 3"]) -> Metric:
     """Root-mean-square Euclidean position error (m) over rows finite in both inputs."""
     est, gt = _as64(est), _as64(gt)
@@ -171,6 +253,7 @@ def _geodesic_angle(q_est: np.ndarray, q_gt: np.ndarray) -> np.ndarray:
     return 2 * np.arctan2(np.linalg.norm(dq[..., 1:], axis=-1), np.abs(dq[..., 0]))
 
 
+@_over_recordings(q_est="rows", q_gt="rows")
 def rotation_rmse_deg(q_est: Float[ArrayLike, "n 4"], q_gt: Float[ArrayLike, "n 4"]) -> Metric:
     """RMS geodesic rotation error in degrees (angle of ``q_est* q_gt``; sign-invariant)."""
     q_est, q_gt = _as64(q_est), _as64(q_gt)
@@ -189,6 +272,7 @@ def rotation_rmse_deg(q_est: Float[ArrayLike, "n 4"], q_gt: Float[ArrayLike, "n 
 # ----------------------------------------------------------------------------------------------
 
 
+@_over_recordings(times="times", positions="rows")
 def rms_jerk_position(times: Float[ArrayLike, " n"], positions: Float[ArrayLike, "n 3"]) -> Metric:
     """RMS magnitude of the third derivative of position (m/s^3).
 
@@ -209,6 +293,7 @@ def rms_jerk_position(times: Float[ArrayLike, " n"], positions: Float[ArrayLike,
     return Metric(float(np.sqrt(np.mean(np.sum(jerk**2, axis=-1)))), int(win.shape[0]))
 
 
+@_over_recordings(times="times", quaternions="rows")
 def rms_jerk_rotation(
     times: Float[ArrayLike, " n"], quaternions: Float[ArrayLike, "n 4"]
 ) -> Metric:
@@ -241,6 +326,7 @@ def _curve_derivatives(times, positions):
     return d1, d2, d3
 
 
+@_over_recordings(times="times", positions="rows")
 def mean_abs_curvature(
     times: Float[ArrayLike, " n"], positions: Float[ArrayLike, "n 3"], *, min_speed: float = 1e-3
 ) -> Metric:
@@ -261,6 +347,7 @@ def mean_abs_curvature(
     return Metric(float(np.mean(kappa)), int(ok.sum()))
 
 
+@_over_recordings(times="times", positions="rows")
 def mean_abs_torsion(
     times: Float[ArrayLike, " n"],
     positions: Float[ArrayLike, "n 3"],
@@ -305,6 +392,7 @@ def _boundary_windows(t, valid, boundary_times):
     return left[ok], right[ok]
 
 
+@_over_recordings(times="times", positions="rows", boundary_times="set")
 def max_velocity_jump(
     times: Float[ArrayLike, " n"],
     positions: Float[ArrayLike, "n 3"],
@@ -330,6 +418,7 @@ def max_velocity_jump(
     return Metric(float(np.max(jump)), int(left.shape[0]))
 
 
+@_over_recordings(times="times", quaternions="rows", boundary_times="set")
 def max_angular_velocity_jump(
     times: Float[ArrayLike, " n"],
     quaternions: Float[ArrayLike, "n 4"],
@@ -361,6 +450,7 @@ def max_angular_velocity_jump(
 # ----------------------------------------------------------------------------------------------
 
 
+@_over_recordings(times="times", est="rows", gt="rows")
 def latency(
     times: Float[ArrayLike, " n"],
     est: Float[ArrayLike, "n d"],
@@ -445,6 +535,8 @@ def latency(
 # ----------------------------------------------------------------------------------------------
 
 
+@_over_recordings(times="times", est_pos="rows", est_quat="rows", gt_pos="rows",
+                  gt_quat="rows", boundary_times="set")
 def evaluate(
     times: Float[ArrayLike, " n"],
     est_pos: Float[ArrayLike, "n 3"],

@@ -70,14 +70,26 @@ def simulate_measurements(
     float32 and float64). Not ``jit``-able as a whole (the number of
     samples depends on the ground-truth time range); the per-sample work is vectorised.
 
+    **Batches**: ground truth with leading batch axes ``B`` (``gt_times (*B, n)``), NaN-padded
+    to a common length (padding rule of :mod:`phjax.batch`: NaN times are padding). Recording
+    ``i`` (row-major over ``B``) is simulated alone with key ``i`` of
+    ``jax.random.split(key, prod(B))`` (a single key or seed), or with its own key / seed when
+    ``key_or_seed`` has shape ``B``; the results are NaN-padded to the longest (padding
+    frames have NaN times, as :func:`phjax.track` expects).
+
     Arguments:
-        key_or_seed: a ``jax.random`` key or an integer seed.
-        gt_times, gt_positions, gt_quaternions: ground truth (``wxyz``), times non-decreasing.
-        model: the :class:`SensorModel`.
+        key_or_seed: a ``jax.random`` key or an integer seed (for batches also one per
+            recording).
+        gt_times, gt_positions, gt_quaternions: ground truth (``wxyz``), times non-decreasing,
+            ``(*B, n)``, ``(*B, n, 3)``, ``(*B, n, 4)``.
+        model: the :class:`SensorModel` (shared by a batch).
 
     Returns:
-        ``(times (m,), positions (m, 3), quaternions (m, 4))`` in the ground-truth dtype.
+        ``(times (*B, m), positions (*B, m, 3), quaternions (*B, m, 4))`` in the ground-truth
+        dtype.
     """
+    if np.ndim(gt_times) > 1:
+        return _simulate_batch(key_or_seed, gt_times, gt_positions, gt_quaternions, model)
     gt_t = np.asarray(gt_times, dtype=np.float64)
     if gt_t.ndim != 1 or gt_t.size == 0 or not np.all(np.isfinite(gt_t)):
         raise ValueError("gt_times must be a non-empty 1-D array of finite times")
@@ -118,6 +130,49 @@ def simulate_measurements(
     q_meas = jnp.where(lost[:, None], nan, q_meas)
     times = jnp.asarray(sample_t + float(model.latency), dtype)
     return times, p_meas, q_meas
+
+
+def _batch_keys(key_or_seed, batch: tuple[int, ...]) -> list:
+    """One key per recording of a batch (row-major)."""
+    r = int(np.prod(batch))
+    if isinstance(key_or_seed, (int, np.integer)):
+        return list(jax.random.split(jax.random.key(int(key_or_seed)), r))
+    k = jnp.asarray(key_or_seed)
+    if jnp.issubdtype(k.dtype, jax.dtypes.prng_key):
+        if k.shape == ():
+            return list(jax.random.split(k, r))
+        if k.shape == batch:
+            return list(k.reshape(-1))
+    elif jnp.issubdtype(k.dtype, jnp.integer) and k.shape == batch:
+        return [jax.random.key(int(x)) for x in np.asarray(k).reshape(-1)]
+    raise ValueError(f"key_or_seed must be a seed, a key, or seeds / keys of the batch shape "
+                     f"{batch}; got {getattr(k, 'dtype', type(k))} of shape {k.shape}")
+
+
+def _simulate_batch(key_or_seed, gt_times, gt_positions, gt_quaternions, model):
+    """:func:`simulate_measurements` of each recording of a NaN-padded batch, padded again."""
+    from ..batch import pad_recordings
+
+    t = np.asarray(gt_times, np.float64)
+    p, q = jnp.asarray(gt_positions), jnp.asarray(gt_quaternions)
+    b, n = t.shape[:-1], t.shape[-1]
+    if p.shape != b + (n, 3) or q.shape != b + (n, 4):
+        raise ValueError("expected gt_times (*B, n), gt_positions (*B, n, 3), gt_quaternions "
+                         f"(*B, n, 4); got {t.shape}, {p.shape}, {q.shape}")
+    dtype = jnp.result_type(p, q, jnp.float32)
+    keys = _batch_keys(key_or_seed, b)
+    t, pn, qn = t.reshape(-1, n), np.asarray(p).reshape(-1, n, 3), np.asarray(q).reshape(-1, n, 4)
+    outs = []
+    for i in range(t.shape[0]):
+        keep = np.isfinite(t[i])
+        if not keep.any():
+            raise ValueError(f"recording {i} of the batch has no ground-truth time")
+        outs.append([np.asarray(x, np.float64) for x in simulate_measurements(
+            keys[i], t[i][keep], pn[i][keep].astype(dtype), qn[i][keep].astype(dtype), model)])
+    mt, mp, mq = pad_recordings(*zip(*outs))
+    m = mt.shape[-1]
+    return (jnp.asarray(mt.reshape(b + (m,)), dtype), jnp.asarray(mp.reshape(b + (m, 3)), dtype),
+            jnp.asarray(mq.reshape(b + (m, 4)), dtype))
 
 
 # ----------------------------------------------------------------------------------------------

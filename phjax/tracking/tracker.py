@@ -31,7 +31,9 @@ for calls this short the hand-off to a worker thread costs more than the computa
 once with :func:`tracker_config_arrays`.
 Batch API: :func:`track` runs the causal stream over a recording in one ``lax.scan`` (the output
 at render time ``tau`` depends only on measurements with ``t <= tau``), and :func:`reconstruct`
-the offline version (RTS-smoothed states joined by PH quintic / C1 quaternion segments).
+the offline version (RTS-smoothed states joined by PH quintic / C1 quaternion segments). Both
+also take NaN-padded batches of recordings, sharded over devices or not
+(:mod:`phjax.tracking._batch`, padding rule in :mod:`phjax.batch`).
 
 Conventions: times in seconds, positions in metres, quaternions wxyz, angular velocities in
 rad/s in the world frame. Render times before the first valid measurement give NaN.
@@ -47,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ._batch import run_batch
 from .kalman import (
     KalmanConfig,
     KalmanState,
@@ -596,36 +599,49 @@ def _latest_states(times, states, render_times):
 
 
 def track(
-    times: Float[ArrayLike, " N"],
-    positions: Float[ArrayLike, "N 3"],
-    quaternions: Float[ArrayLike, "N 4"],
-    render_times: Float[ArrayLike, " M"],
+    times: Float[ArrayLike, "*B N"],
+    positions: Float[ArrayLike, "*B N 3"],
+    quaternions: Float[ArrayLike, "*B N 4"],
+    render_times: Float[ArrayLike, "*B M"],
     *,
     config: TrackerConfig | None = None,
     dtype=None,
-) -> tuple[Float[Array, "M 3"], Float[Array, "M 4"]]:
-    """Causal render-rate stream over a whole recording (one ``lax.scan``).
+) -> tuple[Float[Array, "*B M 3"], Float[Array, "*B M 4"]]:
+    """Causal render-rate stream over a whole recording (one ``lax.scan``), or a batch of them.
 
     Equivalent to calling :func:`tracker_update` for each measurement and
     :func:`tracker_sample` at each render time: the output at ``tau`` uses only measurements
-    with ``t <= tau``. Each new pair of lengths ``(N, M)`` compiles the scan (seconds); at
-    most four shapes stay compiled (more would exhaust the process's memory mappings, see
-    ``_bounded_cache``).
+    with ``t <= tau``. Each new pair of lengths ``(N, M)`` (batch shape included) compiles the
+    scan (seconds); at most four shapes stay compiled (more would exhaust the process's memory
+    mappings, see ``_bounded_cache``).
+
+    **Batches** (leading axes ``B``, one compiled program for the whole batch): recordings
+    NaN-padded to a common length ``N`` (:func:`phjax.batch.pad_recordings`). Padding rule: a
+    NaN time is a padding frame, counted as a lost frame after the recording's end (padding
+    must follow every real frame); a NaN render time gives a NaN sample; ``render_times`` may
+    be ``(M,)``, shared by every recording. Each recording gets its one-recording result. In a
+    batch, times must already be strictly increasing (an error, not a warning). Inputs sharded
+    along axis 0 (:func:`phjax.batch.shard_batch`) run on each device's part of the batch and
+    the outputs come back sharded the same way.
 
     Arguments:
-        times: measurement times, s (sorted and de-duplicated here with a warning if needed;
-            internally relative to the first time, so absolute epoch times are fine).
+        times: measurement times, s (one recording: sorted and de-duplicated here with a
+            warning if needed; internally relative to the first time, so absolute epoch times
+            are fine).
         positions: measured positions, m; NaN rows are missing frames. If every position is
             NaN (orientation-only data) the orientation is tracked and positions are NaN.
         quaternions: measured orientations wxyz; NaN rows are missing frames.
         render_times: times at which to render, s (any order).
-        config: tracker configuration (default :class:`TrackerConfig()`).
+        config: tracker configuration (default :class:`TrackerConfig()`), shared by the batch.
         dtype: computation dtype (default: JAX's default float; pass ``jnp.float64`` with x64
             enabled for double precision).
 
     Returns:
-        ``(positions (M, 3), quaternions (M, 4))``; NaN before the first valid measurement.
+        ``(positions (*B, M, 3), quaternions (*B, M, 4))``; NaN before the first valid
+        measurement (and at padded render times).
     """
+    if jnp.ndim(times) > 1:
+        return run_batch("track", config, times, positions, quaternions, render_times, dtype)
     return _run_recording(_track_core, config, times, positions, quaternions, render_times, dtype)
 
 
@@ -661,21 +677,24 @@ def _reconstruct_core(config, times, positions, quaternions, render_times):
 
 
 def reconstruct(
-    times: Float[ArrayLike, " N"],
-    positions: Float[ArrayLike, "N 3"],
-    quaternions: Float[ArrayLike, "N 4"],
-    render_times: Float[ArrayLike, " M"],
+    times: Float[ArrayLike, "*B N"],
+    positions: Float[ArrayLike, "*B N 3"],
+    quaternions: Float[ArrayLike, "*B N 4"],
+    render_times: Float[ArrayLike, "*B M"],
     *,
     config: TrackerConfig | None = None,
     dtype=None,
-) -> tuple[Float[Array, "M 3"], Float[Array, "M 4"]]:
+) -> tuple[Float[Array, "*B M 3"], Float[Array, "*B M 4"]]:
     """Offline reconstruction: RTS-smoothed states joined by C1 PH quintic / quaternion segments.
 
-    Not causal (uses the whole recording). Same arguments and conventions as :func:`track`;
-    render times outside the measurement span hold the end poses (before the first valid
-    measurement: its pose).
+    Not causal (uses the whole recording). Same arguments, conventions, batches (NaN padding
+    rule) and sharding as :func:`track`; render times outside the measurement span hold the
+    end poses (before the first valid measurement: its pose; after the last real frame of a
+    padded recording: its pose).
 
     Returns:
-        ``(positions (M, 3), quaternions (M, 4))``.
+        ``(positions (*B, M, 3), quaternions (*B, M, 4))``.
     """
+    if jnp.ndim(times) > 1:
+        return run_batch("reconstruct", config, times, positions, quaternions, render_times, dtype)
     return _run_recording(_reconstruct_core, config, times, positions, quaternions, render_times, dtype)

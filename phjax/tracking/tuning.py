@@ -72,6 +72,7 @@ from .._misc import safe_div, safe_sqrt
 from .kalman import KalmanConfig
 from ..quaternion import quat_conj, quat_geodesic_distance, quat_mul, quat_normalize, quat_to_rotvec
 from ..motion.simulate import SensorModel
+from ._batch import _lost_padding_frames
 from .tracker import TrackerConfig, tracker_init, tracker_sample, tracker_update
 
 __all__ = [
@@ -247,7 +248,9 @@ def prepare_recordings(
 
     Arguments:
         ground_truths: sequence of ``(times, positions, quaternions)`` (e.g.
-            :class:`phjax.io.Trajectory`); NaN positions = orientation-only.
+            :class:`phjax.io.Trajectory`), or one NaN-padded batch ``(times (R, n),
+            positions (R, n, 3), quaternions (R, n, 4))`` (:func:`phjax.batch.pad_recordings`);
+            NaN positions = orientation-only.
         sensor: the :class:`~phjax.SensorModel` (default ``SensorModel()``: 30 Hz, 5 mm,
             1 degree, 5 % dropouts).
         render_rate: render rate, Hz.
@@ -270,6 +273,11 @@ def prepare_recordings(
         reference_config = KalmanConfig(**TUNED["kalman"])
     if not render_rate > 0:
         raise ValueError(f"render_rate must be positive, got {render_rate}")
+    if (isinstance(ground_truths, tuple) and len(ground_truths) == 3
+            and np.ndim(ground_truths[0]) == 2):  # a NaN-padded batch (times (R, n), ...)
+        from ..batch import unpad
+
+        ground_truths = unpad(*ground_truths)
     if len(ground_truths) == 0:
         raise ValueError("need at least one recording")
     recs = []
@@ -415,15 +423,34 @@ def stream_metrics(
     return jnp.stack([e_p, e_r, j_p, j_r])
 
 
-def loss_terms(config: TrackerConfig, data: TuningData) -> Float[Array, "R 4"]:
-    """``[E_p, E_r, J_p, J_r]`` (m, rad, m/s^3, rad/s^3) of the causal stream on each recording."""
+def loss_terms(config: TrackerConfig, data: TuningData) -> Float[Array, "*R 4"]:
+    """``[E_p, E_r, J_p, J_r]`` (m, rad, m/s^3, rad/s^3) of the causal stream on each recording.
+
+    ``data`` may have any leading batch axes ``R`` (e.g. ``(sweeps, recordings)``) and follow
+    the NaN padding rule of :mod:`phjax.batch`: NaN measurement times are lost frames after the
+    recording's end, NaN render times are masked samples (values and gradients stay finite).
+    """
+    b = data.times.shape[:-1]
+    flat = jax.tree.map(lambda x, k: x.reshape((-1,) + x.shape[x.ndim - k:]), data,
+                        TuningData(*_CORE_RANKS))
 
     def one(t, p, q, r, mask, gp, gq):
+        t, p, q = _lost_padding_frames(t, p, q)
+        r_ok = jnp.isfinite(r)
+        # masked stand-ins for padded render times: increasing and after the real ones
+        r_last = jnp.max(jnp.where(r_ok, r, -jnp.inf))
+        r_last = jnp.where(jnp.isfinite(r_last), r_last, 0)
+        r = jnp.where(r_ok, r, r_last + 1 + jnp.cumsum(~r_ok))
         sp, sq = _stream(config, t, p, q, r)
-        return stream_metrics(r, sp, sq, gp, gq, mask)
+        return stream_metrics(r, sp, sq, gp, gq, mask & r_ok)
 
-    return jax.vmap(one)(data.times, data.positions, data.quaternions, data.render_times,
-                         data.render_mask, data.gt_positions, data.gt_quaternions)
+    terms = jax.vmap(one)(flat.times, flat.positions, flat.quaternions, flat.render_times,
+                          flat.render_mask, flat.gt_positions, flat.gt_quaternions)
+    return terms.reshape(b + (4,))
+
+
+#: core rank of each :class:`TuningData` field (the leading axes beyond it are batch axes)
+_CORE_RANKS = (1, 2, 2, 1, 1, 2, 2, 1)
 
 
 def _combine(terms, reference, lam, position_weight, rotation_weight, normalize):
@@ -459,7 +486,8 @@ def tracker_loss(
 
     Arguments:
         config: tracker configuration.
-        data: recordings from :func:`prepare_recordings`.
+        data: recordings from :func:`prepare_recordings` (any leading batch axes, NaN padding
+            as in :func:`loss_terms`); the mean runs over all of them.
         lam: weight of the jerk terms (dimensionless when normalised).
         position_weight, rotation_weight: weights of the position and rotation terms.
         normalize: divide each term by the reference stream's value.
@@ -467,8 +495,9 @@ def tracker_loss(
     Returns:
         The scalar loss.
     """
-    terms = loss_terms(config, data)
-    return _combine(terms, data.reference, lam, position_weight, rotation_weight, normalize)
+    terms = loss_terms(config, data).reshape(-1, 4)
+    return _combine(terms, data.reference.reshape(-1, 4), lam, position_weight, rotation_weight,
+                    normalize)
 
 
 class TuningProblem(eqx.Module):
@@ -510,8 +539,8 @@ class TuningProblem(eqx.Module):
     def loss_and_terms(self, y: Float[Array, " P"]) -> tuple[Float[Array, ""], Float[Array, "R 4"]]:
         """:func:`tracker_loss` at log-parameters ``y`` and the :func:`loss_terms` it combines."""
         terms = loss_terms(self.config_from_params(y), self.data)
-        loss = _combine(terms, self.data.reference, self.lam, self.position_weight,
-                        self.rotation_weight, self.normalize)
+        loss = _combine(terms.reshape(-1, 4), self.data.reference.reshape(-1, 4), self.lam,
+                        self.position_weight, self.rotation_weight, self.normalize)
         return loss, terms
 
     def loss(self, y: Float[Array, " P"]) -> Float[Array, ""]:

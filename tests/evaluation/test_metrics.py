@@ -274,3 +274,51 @@ def test_fd_weights_reproduce_polynomial_derivatives():
     for order in range(4):
         w = metrics._fd_weights(d, order)
         np.testing.assert_allclose(np.sum(w * f, 1), math.factorial(order) * c[order], rtol=1e-7)
+
+
+def test_metrics_take_nan_padded_batches():
+    """Every metric on a padded batch (2 x 2 recordings) equals the metric of each recording
+    alone; padding rows are cut off, boundary times may be shared or per recording."""
+    from phjax.batch import pad_recordings
+
+    rng = np.random.default_rng(3)
+    recs = []
+    for n in (40, 55, 61, 33):
+        t = np.cumsum(rng.uniform(0.005, 0.012, n))
+        p = np.stack([np.sin(3 * t), np.cos(2 * t), t**2], -1) + 1e-4 * rng.normal(size=(n, 3))
+        q = Rotation.from_rotvec(np.stack([t, 0.5 * t, np.sin(t)], -1)).as_quat()[:, [3, 0, 1, 2]]
+        g = p + 1e-3 * rng.normal(size=(n, 3))
+        gq = (Rotation.from_rotvec(0.01 * rng.normal(size=(n, 3)))
+              * Rotation.from_quat(q[:, [1, 2, 3, 0]])).as_quat()[:, [3, 0, 1, 2]]
+        b = t[5:-5:7] + 1e-4
+        recs.append((t, p, q, g, gq, b))
+    t, p, q, g, gq, b = (x.reshape((2, 2) + x.shape[1:]) for x in pad_recordings(*zip(*recs)))
+    cases = [
+        (metrics.position_rmse, lambda r: (r[1], r[3]), (p, g)),
+        (metrics.rotation_rmse_deg, lambda r: (r[2], r[4]), (q, gq)),
+        (metrics.rms_jerk_position, lambda r: (r[0], r[1]), (t, p)),
+        (metrics.rms_jerk_rotation, lambda r: (r[0], r[2]), (t, q)),
+        (metrics.mean_abs_curvature, lambda r: (r[0], r[1]), (t, p)),
+        (metrics.mean_abs_torsion, lambda r: (r[0], r[1]), (t, p)),
+        (metrics.max_velocity_jump, lambda r: (r[0], r[1], r[5]), (t, p, b)),
+        (metrics.max_angular_velocity_jump, lambda r: (r[0], r[2], recs[0][5]),
+         (t, q, recs[0][5])),
+        (metrics.latency, lambda r: (r[0], r[1], r[3]), (t, p, g)),
+    ]
+    for fn, pick, batch_args in cases:
+        res = fn(*batch_args)
+        for k, r in enumerate(recs):
+            alone = fn(*pick(r))
+            for field_b, field_a in zip(res, alone):
+                assert np.shape(field_b) == (2, 2)
+                np.testing.assert_allclose(np.asarray(field_b).reshape(4)[k], field_a,
+                                           rtol=1e-12, equal_nan=True)
+    ev = metrics.evaluate(t, p, q, g, gq, b)
+    for k, r in enumerate(recs):
+        alone = metrics.evaluate(*r[:5], r[5])
+        for name, v in alone.items():
+            np.testing.assert_allclose(ev[name].reshape(4)[k], v, rtol=1e-12, equal_nan=True)
+    bad = t.copy()
+    bad[0, 0, 3] = np.nan
+    with pytest.raises(ValueError, match="padding"):
+        metrics.rms_jerk_position(bad, p)

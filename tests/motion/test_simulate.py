@@ -170,3 +170,27 @@ def test_head_motion_is_c2_and_contains_tremor():
     # tremor amplitude: 8-12 Hz angular velocity RMS of 0.1-deg sinusoids ~ 2 pi f 0.1 deg / sqrt 2
     band_rms = np.sqrt(psd[(f >= 7) & (f <= 13)].sum() * (f[1] - f[0]))
     assert 3 < np.degrees(band_rms) < 20
+
+
+def test_simulate_batch_equals_each_recording_alone():
+    """A NaN-padded batch of ground truths: recording i is simulated alone with key i of the
+    split key (or its own seed), results NaN-padded to the longest."""
+    from phjax.batch import pad_recordings, unpad
+
+    gts = [synthetic_head_motion(duration=d, rate=120.0, seed=i) for i, d in enumerate((1.0, 1.5))]
+    t, p, q = pad_recordings(*zip(*gts))
+    model = SensorModel(dropout=0.3, jitter=0.1)
+    keys = jax.random.split(jax.random.key(7), 2)
+    bt, bp, bq = simulate_measurements(7, t.reshape(1, 2, -1), p.reshape(1, 2, -1, 3),
+                                       q.reshape(1, 2, -1, 4), model)
+    assert bt.shape[:2] == (1, 2) and bp.shape == bt.shape + (3,)
+    per_seed = simulate_measurements(np.array([3, 4]), t, p, q, model)
+    for i, (gt, rec, rec_s) in enumerate(zip(gts, unpad(bt[0], bp[0], bq[0]),
+                                             unpad(*per_seed))):
+        for a, b in zip(rec, simulate_measurements(keys[i], *gt, model)):
+            np.testing.assert_array_equal(a, np.asarray(b))
+        for a, b in zip(rec_s, simulate_measurements(3 + i, *gt, model)):
+            np.testing.assert_array_equal(a, np.asarray(b))
+    assert np.isnan(np.asarray(bt[0, 0])).sum() == 15  # 31 vs 46 samples at 30 Hz
+    with pytest.raises(ValueError, match="key_or_seed"):
+        simulate_measurements(np.array([1, 2, 3]), t, p, q, model)

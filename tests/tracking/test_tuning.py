@@ -10,6 +10,7 @@ import dataclasses
 import json
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -293,3 +294,34 @@ def test_cli_tune_writes_config_that_load_config_reads(tmp_path, capsys):
     assert config_from_args(parser.parse_args([])) is None
     with pytest.raises(FileNotFoundError):
         config_from_args(parser.parse_args(["--config", str(tmp_path / "missing.json")]))
+
+
+def test_loss_terms_take_batch_axes_and_nan_padding():
+    """The loss on the same recordings with extra leading axes and with NaN padding (padding
+    frames with NaN times, padded render times NaN) equals the loss on the prepared data."""
+    gts = [pj.synthetic_head_motion(duration=d, rate=120.0, seed=s) for s, d in ((0, 1.0),
+                                                                                 (1, 1.4))]
+    data = tuning.prepare_recordings(gts)
+    r_max = jnp.max(jnp.where(data.render_mask, data.render_times, -jnp.inf), axis=1)
+    pad_frames = data.times > r_max[:, None] + 0.5
+    assert bool(jnp.any(pad_frames)) and not bool(jnp.all(data.render_mask))
+    nan_padded = eqx.tree_at(
+        lambda d: (d.times, d.render_times), data,
+        (jnp.where(pad_frames, jnp.nan, data.times),
+         jnp.where(data.render_mask, data.render_times, jnp.nan)))
+    stacked = jax.tree.map(lambda x: x[None], nan_padded)  # (1, 2, ...)
+    cfg = pj.TrackerConfig()
+
+    @jax.jit
+    def both(a, b):
+        return tuning.loss_terms(cfg, a), tuning.loss_terms(cfg, b), tuning.tracker_loss(cfg, b)
+
+    terms, terms_b, loss_b = both(data, stacked)
+    assert terms_b.shape == (1, 2, 4) and bool(jnp.all(jnp.isfinite(terms)))
+    np.testing.assert_allclose(terms_b[0], terms, rtol=1e-12)
+    np.testing.assert_allclose(loss_b, tuning.tracker_loss(cfg, data), rtol=1e-12)
+    # a padded batch of ground truths prepares the same data
+    padded = pj.pad_recordings(*zip(*gts))
+    same = tuning.prepare_recordings(padded)
+    for a, b in zip(jax.tree.leaves(same), jax.tree.leaves(data)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
