@@ -36,21 +36,21 @@ from .._np_quat import np_qconj as _np_qconj
 from .._np_quat import np_qmul as _np_qmul
 from .._np_quat import np_qnormalize as _np_qnormalize
 from .._np_quat import np_rotvec as _np_rotvec
-from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
 from ..motion.resample import interpolate_poses, valid_rows
+from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
 
 __all__ = [
     "TUNED",
+    "alpha_beta",
+    "cubic_spline",
     "hold",
+    "imm_extrapolation",
+    "kalman_extrapolation",
+    "linear_slerp",
     "one_euro",
     "one_euro_extrapolation",
-    "alpha_beta",
-    "snapshot_interpolation",
-    "imm_extrapolation",
     "one_euro_numpy",
-    "linear_slerp",
-    "cubic_spline",
-    "kalman_extrapolation",
+    "snapshot_interpolation",
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]

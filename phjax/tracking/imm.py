@@ -65,17 +65,17 @@ from .models import ConstantAcceleration, ConstantVelocity
 
 __all__ = [
     "IMMConfig",
-    "IMMState",
     "IMMInfo",
-    "imm_mixing",
-    "imm_linear_step",
+    "IMMState",
     "imm_combine",
-    "imm_init",
-    "imm_uninitialized",
-    "imm_step",
-    "imm_filter",
     "imm_estimate",
+    "imm_filter",
+    "imm_init",
+    "imm_linear_step",
+    "imm_mixing",
     "imm_predict_pose",
+    "imm_step",
+    "imm_uninitialized",
 ]
 
 _LOG_2PI = math.log(2 * math.pi)
@@ -123,10 +123,10 @@ class IMMConfig(eqx.Module):
             raise ValueError("IMMConfig needs at least one position and one rotation model")
         for m in self.position_models:
             if not isinstance(m, (ConstantVelocity, ConstantAcceleration)):
-                raise ValueError(f"position models must be CV / CA models, got {type(m).__name__}")
+                raise TypeError(f"position models must be CV / CA models, got {type(m).__name__}")
         for m in self.rotation_models:
             if not isinstance(m, ConstantVelocity):
-                raise ValueError("rotation models must be ConstantVelocity models, got "
+                raise TypeError("rotation models must be ConstantVelocity models, got "
                                  f"{type(m).__name__}")
 
     @property

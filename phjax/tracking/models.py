@@ -25,7 +25,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .kalman import _pos_matrices
 
-__all__ = ["ConstantVelocity", "ConstantAcceleration", "MotionModel"]
+__all__ = ["ConstantAcceleration", "ConstantVelocity", "MotionModel"]
 
 
 class _Model(eqx.Module):

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
+from phjax.quaternion import quat_geodesic_distance
 from phjax.tracking.baselines import (
     alpha_beta,
     imm_extrapolation,
@@ -19,7 +20,6 @@ from phjax.tracking.baselines import (
 from phjax.tracking.imm import IMMConfig
 from phjax.tracking.kalman import KalmanConfig
 from phjax.tracking.models import ConstantVelocity
-from phjax.quaternion import quat_geodesic_distance
 
 N, M = 45, 150
 
