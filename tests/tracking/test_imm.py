@@ -228,44 +228,56 @@ def _loss(cfg, t, mp, mq, p, q):
     return jnp.sum((est.x[:, :3] - p) ** 2) * 1e4 + jnp.sum(dq * dq) * 1e3
 
 
+# one compilation shared by the gradient tests (same config structure and recording length)
+_loss_jit = eqx.filter_jit(_loss)
+_value_and_grad = eqx.filter_jit(eqx.filter_value_and_grad(_loss))
+
+
+def _grad_config(q_cv, q_ca, rate):
+    cfg = IMMConfig(position_models=(ConstantVelocity.from_q(q_cv), ConstantAcceleration.from_q(q_ca)),
+                    log_switch_rate=math.log(rate))
+    return jax.tree.map(lambda x: jnp.asarray(x, jnp.float64), cfg)
+
+
 def test_gradients_match_finite_differences():
     t, mp, mq, p, q = _recording(1, n=60)
-    cfg = IMMConfig(position_models=(ConstantVelocity.from_q(0.01), ConstantAcceleration.from_q(5.0)))
-    params, static = eqx.partition(cfg, eqx.is_inexact_array_like)
-    f = jax.jit(lambda prm: _loss(eqx.combine(prm, static), t, mp, mq, p, q))
-    g = jax.grad(f)(params)
-    leaves, tree = jax.tree.flatten(params)
+    cfg = _grad_config(0.01, 5.0, 2.0)
+    _, g = _value_and_grad(cfg, t, mp, mq, p, q)
+    leaves, tree = jax.tree.flatten(cfg)
     gl = jax.tree.leaves(g)
     assert all(np.all(np.isfinite(x)) for x in gl)
     for i in [0, 1, 2, 4, 5]:  # model log-densities and the switch rate
         h = 1e-5
         up = [x + h if j == i else x for j, x in enumerate(leaves)]
         dn = [x - h if j == i else x for j, x in enumerate(leaves)]
-        fd = (f(jax.tree.unflatten(tree, up)) - f(jax.tree.unflatten(tree, dn))) / (2 * h)
+        fd = (_loss_jit(jax.tree.unflatten(tree, up), t, mp, mq, p, q)
+              - _loss_jit(jax.tree.unflatten(tree, dn), t, mp, mq, p, q)) / (2 * h)
         np.testing.assert_allclose(gl[i], fd, rtol=1e-4, atol=1e-8)
 
 
 def test_no_nan_when_mode_probability_underflows():
-    """An outlier makes one model's likelihood exp(-1e5): its probability underflows to 0;
-    values and gradients stay finite and the mode can come back through switching."""
-    t, mp, mq, p, q = _recording(2, n=40, drop=0.0)
+    """An outlier makes one model's likelihood astronomically small: its probability
+    underflows to 0 in linear space; values and gradients stay finite and the mode comes
+    back through switching."""
+    t, mp, mq, p, q = _recording(2, n=60, drop=0.0)
     mp = mp.copy()
-    mp[20] += 3.0  # 3 m jump: astronomically unlikely under the quiet model
-    cfg = IMMConfig(position_models=tuple(ConstantVelocity.from_q(v) for v in (1e-4, 1e3)),
-                    log_switch_rate=math.log(0.01))
-    states, _ = imm_filter(cfg, t, mp, mq)
+    mp[20] += 3.0  # 3 m jump: log-likelihood about -1e5 under the quiet model
+    cfg = _grad_config(1e-4, 1e6, 0.01)
+    states, _ = jax.jit(imm_filter)(cfg, t, mp, mq)
     assert float(states.mu[20, 0]) == 0.0  # underflowed in linear space
     assert np.isfinite(np.asarray(states.pos_log_mu)).all()
     assert float(states.mu[-1, 0]) > 0.5  # the quiet model recovers
-    params, static = eqx.partition(cfg, eqx.is_inexact_array_like)
-    g = jax.grad(lambda prm: _loss(eqx.combine(prm, static), t, mp, mq, p, q))(params)
-    assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(g))
+    val, g = _value_and_grad(cfg, t, mp, mq, p, q)
+    assert np.isfinite(val) and all(np.all(np.isfinite(x)) for x in jax.tree.leaves(g))
     # a state with a mode at exactly -inf log probability
     st = jax.tree.map(lambda a: a[10], states)
     st = eqx.tree_at(lambda s: s.pos_log_mu, st, jnp.array([0.0, -jnp.inf]))
+
+    @jax.jit
     def f(x):
         s2, _ = imm_step(cfg, st, t[11], x, mq[11])
         return imm_estimate(s2).x.sum()
+
     val, gx = jax.value_and_grad(f)(jnp.asarray(mp[11]))
     assert np.isfinite(val) and np.all(np.isfinite(gx))
 
