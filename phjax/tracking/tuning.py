@@ -69,7 +69,9 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._misc import safe_div, safe_sqrt
+from .imm import IMMConfig
 from .kalman import KalmanConfig
+from .models import ConstantAcceleration, ConstantVelocity
 from ..quaternion import quat_conj, quat_geodesic_distance, quat_mul, quat_normalize, quat_to_rotvec
 from ..motion.simulate import SensorModel
 from .tracker import TrackerConfig, tracker_init, tracker_sample, tracker_update
@@ -845,12 +847,49 @@ def config_to_dict(config: TrackerConfig, metadata: dict | None = None) -> dict:
     field (format tag, version, ``"tracker"`` and ``"kalman"`` sections, optional
     ``"metadata"``)."""
     tracker = {n: _jsonable(getattr(config, n))
-               for n in _field_names(TrackerConfig) if n != "kalman"}
+               for n in _field_names(TrackerConfig) if n not in ("kalman", "imm")}
     kalman = {n: _jsonable(getattr(config.kalman, n)) for n in _field_names(KalmanConfig)}
-    out = {"format": CONFIG_FORMAT, "version": CONFIG_VERSION, "tracker": tracker, "kalman": kalman}
+    out = {"format": CONFIG_FORMAT, "version": CONFIG_VERSION, "tracker": tracker, "kalman": kalman,
+           "imm": _imm_to_dict(config.imm)}
     if metadata:
         out["metadata"] = json.loads(json.dumps(metadata, default=_jsonable))
     return out
+
+
+_MODEL_KINDS = {"cv": ConstantVelocity, "ca": ConstantAcceleration}
+
+
+def _imm_to_dict(imm: IMMConfig | None) -> dict | None:
+    """The IMM section: models as ``{"model": "cv" | "ca", "log_q": log density}`` and the
+    other :class:`IMMConfig` fields; ``None`` for the single-model filter."""
+    if imm is None:
+        return None
+
+    def models(ms):
+        return [{"model": "cv" if isinstance(m, ConstantVelocity) else "ca",
+                 "log_q": _jsonable(m.log_q)} for m in ms]
+
+    rest = {n: _jsonable(getattr(imm, n)) for n in _field_names(IMMConfig)
+            if n not in ("position_models", "rotation_models")}
+    return {"position_models": models(imm.position_models),
+            "rotation_models": models(imm.rotation_models), **rest}
+
+
+def _imm_from_dict(sec, source: str) -> IMMConfig | None:
+    if sec is None:
+        return None
+    if not isinstance(sec, dict):
+        raise ValueError(f"{source}: 'imm' must be an object or null")
+    sec = dict(sec)
+    try:
+        kw = {}
+        for key in ("position_models", "rotation_models"):
+            if key in sec:
+                kw[key] = tuple(_MODEL_KINDS[m["model"]](log_q=float(m["log_q"]))
+                                for m in sec.pop(key))
+        return IMMConfig(**kw, **sec)
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"{source}: invalid imm section: {err}") from err
 
 
 def config_from_dict(d: dict, source: str = "<dict>") -> TrackerConfig:
@@ -868,11 +907,12 @@ def config_from_dict(d: dict, source: str = "<dict>") -> TrackerConfig:
     if version != CONFIG_VERSION:
         raise ValueError(f"{source}: unsupported configuration version {version!r} "
                          f"(this phjax reads version {CONFIG_VERSION})")
-    extra = set(d) - {"format", "version", "tracker", "kalman", "metadata"}
+    extra = set(d) - {"format", "version", "tracker", "kalman", "imm", "metadata"}
     if extra:
         raise ValueError(f"{source}: unknown top-level key(s) {sorted(extra)}")
     sections = {}
-    for key, cls, skip in (("tracker", TrackerConfig, {"kalman"}), ("kalman", KalmanConfig, set())):
+    for key, cls, skip in (("tracker", TrackerConfig, {"kalman", "imm"}),
+                           ("kalman", KalmanConfig, set())):
         sec = d.get(key, {})
         if not isinstance(sec, dict):
             raise ValueError(f"{source}: '{key}' must be an object")
@@ -887,7 +927,8 @@ def config_from_dict(d: dict, source: str = "<dict>") -> TrackerConfig:
         sections[key] = sec
     try:
         kalman = KalmanConfig(**sections["kalman"])
-        return TrackerConfig(kalman=kalman, **sections["tracker"])
+        extra = {"imm": _imm_from_dict(d["imm"], source)} if "imm" in d else {}
+        return TrackerConfig(kalman=kalman, **extra, **sections["tracker"])
     except (TypeError, ValueError) as err:
         raise ValueError(f"{source}: invalid configuration: {err}") from err
 

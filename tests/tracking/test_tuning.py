@@ -239,7 +239,24 @@ def test_save_load_roundtrip(tmp_path_factory, model, gate, values):
     assert d["version"] == tuning.CONFIG_VERSION and d["metadata"] == {"lambda": 0.3}
     # every field of both configs is written
     assert set(d["kalman"]) == {f.name for f in dataclasses.fields(pj.KalmanConfig)}
-    assert set(d["tracker"]) | {"kalman"} == {f.name for f in dataclasses.fields(pj.TrackerConfig)}
+    assert set(d["tracker"]) | {"kalman", "imm"} == {f.name for f in dataclasses.fields(pj.TrackerConfig)}
+
+
+def test_save_load_roundtrip_imm(tmp_path):
+    from phjax.tracking.imm import IMMConfig
+    from phjax.tracking.models import ConstantAcceleration, ConstantVelocity
+
+    imm = IMMConfig(position_models=(ConstantVelocity.from_q(0.01), ConstantAcceleration.from_q(7.0)),
+                    rotation_models=(ConstantVelocity.from_q(0.2),), log_switch_rate=0.3,
+                    pos_meas_noise=0.004)
+    for cfg in (pj.TrackerConfig(imm=imm, horizon=0.04), pj.TrackerConfig(imm=None)):
+        tuning.save_config(tmp_path / "c.json", cfg)
+        assert tuning.load_config(tmp_path / "c.json") == cfg
+    d = tuning.config_to_dict(pj.TrackerConfig(imm=imm))
+    d["imm"]["position_models"][0]["model"] = "xyz"
+    (tmp_path / "bad.json").write_text(json.dumps(d))
+    with pytest.raises(ValueError, match="invalid imm section"):
+        tuning.load_config(tmp_path / "bad.json")
 
 
 def test_load_config_errors(tmp_path):
