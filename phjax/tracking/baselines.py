@@ -10,9 +10,11 @@ separate channels (a NaN position with a finite quaternion still updates the ori
 ``times`` must be finite and non-decreasing; in float32 use times relative to the start of the
 stream (absolute UNIX timestamps lose sub-millisecond resolution).
 
-* **Causal** methods (:func:`hold`, :func:`one_euro`, :func:`one_euro_numpy`): the output at render
-  time ``tau`` depends only on measurements with ``t <= tau``; render times before the first
-  valid measurement of a channel give NaN.
+* **Causal** methods (:func:`hold`, :func:`one_euro`, :func:`one_euro_numpy`,
+  :func:`one_euro_extrapolation`, :func:`alpha_beta`, :func:`kalman_extrapolation`,
+  :func:`imm_extrapolation`, :func:`snapshot_interpolation`): the output at render time ``tau``
+  depends only on measurements with ``t <= tau``; render times before the first valid
+  measurement of a channel give NaN.
 * **Offline** methods (:func:`linear_slerp`, :func:`cubic_spline`) use all measurements (not
   causal); render times outside the valid range are clamped to the end poses.
 

@@ -526,9 +526,6 @@ def imm_step(
     return new, info
 
 
-imm_step_jit = jax.jit(imm_step)
-
-
 @jax.jit
 def imm_filter(
     config: IMMConfig,

@@ -93,6 +93,11 @@ class TrackerConfig(eqx.Module):
             0.028 s (development set, 30 Hz camera, 120 Hz render: RMSE 1.037x / 1.044x and
             RMS jerk 0.290x / 0.293x of the filter's own constant-velocity extrapolation for
             position / rotation; see ``experiments/tune_baselines.py --horizon-only``).
+        adapt: adaptive settling (IMM only): each segment's horizon is
+            ``horizon * exp(adapt (1 - 2 m))``, where ``m`` in [0, 1] is the expected mode index
+            of the IMM (0: the quietest model certain, 1: the most agile one), averaged over
+            position and orientation: longer, heavier smoothing for a still head, shorter
+            settling in fast turns. Default 0 (fixed horizon).
         coast_time: after a segment ends without a new frame, keep moving with the end
             velocities for this long, s (default 0.1).
         stop_time: then let the velocities decay with this time constant, s (default 0.05).
@@ -101,6 +106,7 @@ class TrackerConfig(eqx.Module):
     kalman: KalmanConfig = eqx.field(default_factory=KalmanConfig)
     imm: IMMConfig | None = None
     horizon: float = 0.028
+    adapt: float = 0.0
     coast_time: float = 0.1
     stop_time: float = 0.05
 
@@ -421,6 +427,21 @@ def _filter_predict(config: TrackerConfig, state, t):
     return p, quat_normalize(q), v, w
 
 
+def _adaptive_factor(config: TrackerConfig, kf, dtype):
+    """Horizon factor ``exp(adapt (1 - 2 m))`` from the IMM's mode probabilities: ``m`` in
+    [0, 1] is the expected mode index (models in the order of the config, quietest first),
+    scaled to [0, 1] and averaged over position and orientation; 1 for the Kalman filter."""
+    if config.imm is None:
+        return jnp.ones((), dtype)
+
+    def expected(log_mu):
+        k = log_mu.shape[0]
+        return jnp.exp(log_mu) @ jnp.linspace(0.0, 1.0, k, dtype=dtype) if k > 1 else 0.5
+
+    m = 0.5 * (expected(kf.pos_log_mu) + expected(kf.rot_log_mu))
+    return jnp.exp(jnp.asarray(config.adapt, dtype) * (1 - 2 * m))
+
+
 def _settle(s):
     """Critically damped decay at ``s`` time constants: weights of the initial offset and of
     the initial rate (per time constant) and their derivatives (per time constant)."""
@@ -441,7 +462,7 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion)
     p_r, v_r, q_r, w_r = _eval_render(state.render, t)
     kf, info = _filter_step(config, state.filter, t, position, quaternion)
     used = info.pos_used | info.rot_used
-    h = jnp.asarray(config.horizon, dtype)
+    h = jnp.asarray(config.horizon, dtype) * _adaptive_factor(config, kf, dtype)
     tc = _SETTLE * h  # time constant of the correction
     t1 = _KNOT * h  # the knot between the two pieces
     # the filter's estimate at t (kf.t == t: its mean, normalised as predict_pose would)
