@@ -86,7 +86,10 @@ class TrackerConfig(eqx.Module):
         kalman: the single-model filter's noise model (:class:`phjax.KalmanConfig`); used by the
             causal stream when ``imm`` is ``None``, and always by :func:`reconstruct` (RTS).
         imm: the interacting-multiple-model filter (:class:`phjax.tracking.imm.IMMConfig`) of
-            the causal stream, or ``None`` for the single-model Kalman filter.
+            the causal stream (default), or ``None`` for the single-model Kalman filter. On the
+            development set (``experiments/frontier.py``, 14 recordings x 15 s, tuned on 7)
+            the IMM stream has 5 % / 2.5 % lower position / rotation RMSE than the single-model
+            stream at the same horizon (medians over all recordings).
         horizon: settling time of each correction, s: the stream reaches the filter's
             prediction ``horizon`` seconds after each camera frame. The main smoothness knob:
             longer is smoother (lower jerk), shorter follows the filter more closely. Default
@@ -104,7 +107,7 @@ class TrackerConfig(eqx.Module):
     """
 
     kalman: KalmanConfig = eqx.field(default_factory=KalmanConfig)
-    imm: IMMConfig | None = None
+    imm: IMMConfig | None = eqx.field(default_factory=IMMConfig)
     horizon: float = 0.028
     adapt: float = 0.0
     coast_time: float = 0.1

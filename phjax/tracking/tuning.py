@@ -147,7 +147,7 @@ def tunable_parameters(config: TrackerConfig | None = None) -> tuple[str, ...]:
     ``"pos_process_noise"``) are used when unique, dotted paths (``"kalman.x"``) otherwise;
     both forms are accepted wherever a parameter name is expected.
     """
-    return tuple(_names(_leaf_paths(TrackerConfig() if config is None else config)))
+    return tuple(_names(_leaf_paths(TrackerConfig(imm=None) if config is None else config)))
 
 
 def _resolve(config: TrackerConfig, parameters: Sequence[str]) -> tuple[tuple[str, ...], ...]:
@@ -551,7 +551,7 @@ def make_problem(
     normalize: bool = True,
 ) -> TuningProblem:
     """A :class:`TuningProblem` (validates the parameter names and positivity)."""
-    config = TrackerConfig() if config is None else config
+    config = TrackerConfig(imm=None) if config is None else config
     parameters = (parameters,) if isinstance(parameters, str) else tuple(parameters)
     paths = _resolve(config, parameters)
     _check_positive(config, paths)
@@ -792,7 +792,7 @@ def tune_tracker(
         data = prepare_recordings(recordings, **prepare_kwargs)
     if max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
-    base = TrackerConfig() if config is None else config
+    base = TrackerConfig(imm=None) if config is None else config
     problem = make_problem(data, lam=lam, config=base, parameters=parameters,
                            position_weight=position_weight, rotation_weight=rotation_weight,
                            normalize=normalize)
@@ -893,7 +893,8 @@ def _imm_from_dict(sec, source: str) -> IMMConfig | None:
 
 
 def config_from_dict(d: dict, source: str = "<dict>") -> TrackerConfig:
-    """Inverse of :func:`config_to_dict` (missing fields take their defaults).
+    """Inverse of :func:`config_to_dict` (missing fields take their defaults; a missing ``"imm"``
+    section means the single-model filter, as in files written before the IMM existed).
 
     Raises:
         ValueError: wrong format tag or version, unknown sections or fields, bad values.
@@ -927,8 +928,9 @@ def config_from_dict(d: dict, source: str = "<dict>") -> TrackerConfig:
         sections[key] = sec
     try:
         kalman = KalmanConfig(**sections["kalman"])
-        extra = {"imm": _imm_from_dict(d["imm"], source)} if "imm" in d else {}
-        return TrackerConfig(kalman=kalman, **extra, **sections["tracker"])
+        # no "imm" section: a file from before the IMM, i.e. the single-model stream
+        imm = _imm_from_dict(d.get("imm"), source)
+        return TrackerConfig(kalman=kalman, imm=imm, **sections["tracker"])
     except (TypeError, ValueError) as err:
         raise ValueError(f"{source}: invalid configuration: {err}") from err
 

@@ -45,7 +45,7 @@ def _comparable(state, exact: bool):
 def test_stream_equals_pure_functions(meas, dtype, model):
     """Every update and the samples between frames equal tracker_update / tracker_sample."""
     mt, mp, mq = meas
-    cfg = pj.TrackerConfig(kalman=pj.KalmanConfig(model=model), horizon=0.035)
+    cfg = pj.TrackerConfig(kalman=pj.KalmanConfig(model=model), imm=None, horizon=0.035)
     s = pj.TrackerStream(cfg, dtype=dtype)
     ref = pj.tracker_init(cfg, 0.0, dtype)
     tol = 1e-12 if dtype == jnp.float64 else 2e-5

@@ -79,7 +79,7 @@ def test_correction_decays_critically_damped(head):
     """After a frame the rendered-minus-predicted pose follows (c0 (1 + s) + c0' t) exp(-s),
     s = t / (horizon / 5), at the knot (0.4 horizon), is C1 there, and is 0 at the horizon."""
     _, _, _, mt, mp, mq = head
-    cfg = pj.TrackerConfig()
+    cfg = pj.TrackerConfig(imm=None)  # the single-model filter: predict_pose below
     h = cfg.horizon
     T, t1 = h / 5, 0.4 * h
     state = pj.tracker_init(cfg, 0.0, jnp.float64)
@@ -150,7 +150,7 @@ def test_config_arrays_and_small_state_buffers(head):
     all frames); every state array has at most 64 elements (XLA's CPU runtime runs a call's
     kernels in the calling thread only when every buffer has at most 512 bytes)."""
     _, _, _, mt, mp, mq = head
-    cfg = pj.TrackerConfig()
+    cfg = pj.TrackerConfig(imm=None)  # the IMM state has (3, 6, 6) covariances
     cfga = pj.tracker_config_arrays(cfg, jnp.float64)
     assert all(isinstance(x, jax.Array) and x.dtype == jnp.float64 for x in jax.tree.leaves(cfga))
     s1 = s2 = pj.tracker_init(cfg, 0.0, jnp.float64)

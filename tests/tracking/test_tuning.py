@@ -45,7 +45,7 @@ def problem(data):
 
 
 def _y0(problem):
-    return problem.params_from_config(pj.TrackerConfig())
+    return problem.params_from_config(pj.TrackerConfig(imm=None))
 
 
 # --------------------------------------------------------------------------- loss and metrics
@@ -121,7 +121,7 @@ def test_gradient_matches_central_differences(problem):
                         - float(problem.value_and_grad(y0 - e)[0])) / (2 * h))
         return np.asarray(out)
 
-    generic = pj.TrackerConfig(horizon=0.0287, kalman=pj.KalmanConfig(
+    generic = pj.TrackerConfig(imm=None, horizon=0.0287, kalman=pj.KalmanConfig(
         pos_process_noise=0.021, rot_process_noise=0.37, pos_meas_noise=0.0061,
         rot_meas_noise=0.013))
     y0 = problem.params_from_config(generic)
@@ -179,7 +179,7 @@ def test_ask_tell_bfgs_matches_optimistix_minimise():
 
 
 def test_tuning_decreases_loss_from_bad_start(data):
-    bad = pj.TrackerConfig(kalman=pj.KalmanConfig(pos_process_noise=3.0, rot_process_noise=30.0,
+    bad = pj.TrackerConfig(imm=None, kalman=pj.KalmanConfig(pos_process_noise=3.0, rot_process_noise=30.0,
                                                   pos_meas_noise=0.05, rot_meas_noise=0.002),
                            horizon=0.2)
     seen = []
@@ -280,7 +280,8 @@ def test_load_config_errors(tmp_path):
     with pytest.raises(ValueError, match="not valid JSON"):
         tuning.load_config(tmp_path / "bad.json")
     partial = {"format": tuning.CONFIG_FORMAT, "version": 1, "tracker": {"horizon": 0.05}}
-    assert tuning.config_from_dict(partial) == pj.TrackerConfig(horizon=0.05)  # defaults fill in
+    # defaults fill in; no "imm" section: the single-model stream (files from before the IMM)
+    assert tuning.config_from_dict(partial) == pj.TrackerConfig(horizon=0.05, imm=None)
 
 
 # --------------------------------------------------------------------------------------- CLI
