@@ -64,7 +64,7 @@ def cmd_tune(args) -> int:
     if not args.lam >= 0:
         raise ValueError(f"--lambda must be non-negative, got {args.lam}")
     start = config_from_args(args)
-    start = TrackerConfig() if start is None else start
+    start = TrackerConfig(imm=None) if start is None else start
     params = DEFAULT_PARAMETERS if not args.parameters else tuple(
         p.strip() for p in args.parameters.split(",") if p.strip())
     check_output(args.output)

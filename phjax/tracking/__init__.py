@@ -1,5 +1,7 @@
 """Tracking: from camera-rate poses to a smooth, predictive render-rate stream.
 
+* :mod:`~phjax.tracking.imm`: the interacting-multiple-model pose filter over the motion models
+  of :mod:`~phjax.tracking.models` (constant velocity / acceleration).
 * :mod:`~phjax.tracking.kalman`: the pose Kalman filter (linear position filter, error-state
   orientation filter), RTS smoother, prediction.
 * :mod:`~phjax.tracking.tracker`: the causal stream (``tracker_update`` / ``tracker_sample``),
@@ -12,12 +14,27 @@
 
 from .baselines import (
     TUNED,
+    alpha_beta,
     cubic_spline,
     hold,
+    imm_extrapolation,
     kalman_extrapolation,
     linear_slerp,
     one_euro,
+    one_euro_extrapolation,
     one_euro_numpy,
+    snapshot_interpolation,
+)
+from .imm import (
+    IMMConfig,
+    IMMInfo,
+    IMMState,
+    imm_estimate,
+    imm_filter,
+    imm_init,
+    imm_predict_pose,
+    imm_step,
+    imm_uninitialized,
 )
 from .kalman import (
     KalmanConfig,
@@ -31,6 +48,7 @@ from .kalman import (
     predict_pose,
     rts_smooth,
 )
+from .models import ConstantAcceleration, ConstantVelocity
 from .stream import TrackerStream
 from .tracker import (
     TrackerConfig,
@@ -45,6 +63,21 @@ from .tracker import (
 from .tuning import TuningResult, load_config, save_config, tracker_loss, tune_tracker
 
 __all__ = [
+    "ConstantAcceleration",
+    "ConstantVelocity",
+    "IMMConfig",
+    "IMMInfo",
+    "IMMState",
+    "alpha_beta",
+    "imm_estimate",
+    "imm_extrapolation",
+    "imm_filter",
+    "imm_init",
+    "imm_predict_pose",
+    "imm_step",
+    "imm_uninitialized",
+    "one_euro_extrapolation",
+    "snapshot_interpolation",
     "KalmanConfig",
     "KalmanInfo",
     "KalmanState",

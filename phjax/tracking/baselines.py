@@ -10,9 +10,11 @@ separate channels (a NaN position with a finite quaternion still updates the ori
 ``times`` must be finite and non-decreasing; in float32 use times relative to the start of the
 stream (absolute UNIX timestamps lose sub-millisecond resolution).
 
-* **Causal** methods (:func:`hold`, :func:`one_euro`, :func:`one_euro_numpy`): the output at render
-  time ``tau`` depends only on measurements with ``t <= tau``; render times before the first
-  valid measurement of a channel give NaN.
+* **Causal** methods (:func:`hold`, :func:`one_euro`, :func:`one_euro_numpy`,
+  :func:`one_euro_extrapolation`, :func:`alpha_beta`, :func:`kalman_extrapolation`,
+  :func:`imm_extrapolation`, :func:`snapshot_interpolation`): the output at render time ``tau``
+  depends only on measurements with ``t <= tau``; render times before the first valid
+  measurement of a channel give NaN.
 * **Offline** methods (:func:`linear_slerp`, :func:`cubic_spline`) use all measurements (not
   causal); render times outside the valid range are clamped to the end poses.
 
@@ -36,17 +38,21 @@ from .._np_quat import np_qconj as _np_qconj
 from .._np_quat import np_qmul as _np_qmul
 from .._np_quat import np_qnormalize as _np_qnormalize
 from .._np_quat import np_rotvec as _np_rotvec
-from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
 from ..motion.resample import interpolate_poses, valid_rows
+from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
 
 __all__ = [
     "TUNED",
-    "hold",
-    "one_euro",
-    "one_euro_numpy",
-    "linear_slerp",
+    "alpha_beta",
     "cubic_spline",
+    "hold",
+    "imm_extrapolation",
     "kalman_extrapolation",
+    "linear_slerp",
+    "one_euro",
+    "one_euro_extrapolation",
+    "one_euro_numpy",
+    "snapshot_interpolation",
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
@@ -166,6 +172,15 @@ def one_euro(
     times, positions = jnp.asarray(times), jnp.asarray(positions)
     quaternions, render_times = jnp.asarray(quaternions), jnp.asarray(render_times)
     _check_inputs(times, positions, quaternions, render_times)
+    (xs, _, vp), (qs, _, vq) = _one_euro_scan(times, positions, quaternions, min_cutoff, beta,
+                                              d_cutoff)
+    k = jnp.searchsorted(times, render_times, side="right") - 1
+    return _hold_channel(xs, vp, k), _hold_channel(qs, vq, k)
+
+
+def _one_euro_scan(times, positions, quaternions, min_cutoff, beta, d_cutoff):
+    """One Euro states after every measurement: ``((x_hat, dx_hat, valid), (q_hat, w_hat,
+    valid))`` (see :func:`one_euro`)."""
     dtype = jnp.result_type(positions, quaternions, times)
     t = times.astype(dtype)
     min_cutoff, beta, d_cutoff = (jnp.asarray(v, dtype) for v in (min_cutoff, beta, d_cutoff))
@@ -209,13 +224,12 @@ def one_euro(
             jnp.where(ok_q, qh_new, qh),
             jnp.where(ok_q, wh_new, wh),
         )
-        return (pos_state, rot_state), (pos_state[2], rot_state[2])
+        return (pos_state, rot_state), (pos_state[2], pos_state[3], rot_state[2], rot_state[3])
 
     zero = jnp.zeros(3, dtype)
     init = ((jnp.array(False), t[0], zero, zero), (jnp.array(False), t[0], ident, zero))
-    _, (xs, qs) = lax.scan(step, init, (t, p, vp, q, vq))
-    k = jnp.searchsorted(times, render_times, side="right") - 1
-    return _hold_channel(xs, vp, k), _hold_channel(qs, vq, k)
+    _, (xs, dxs, qs, ws) = lax.scan(step, init, (t, p, vp, q, vq))
+    return (xs, dxs, vp), (qs, ws, vq)
 
 
 def one_euro_numpy(
@@ -390,6 +404,230 @@ def _kalman_extrapolation_core(config, t, p, q, r):
     states, _ = kalman_filter(config, t, p, q)
     sel, before = _latest_states(t, states, r)
     pos, quat, _, _ = jax.vmap(lambda s, tau: predict_pose(config, s, tau))(sel, r)
+    bad = before | ~sel.initialized
+    nan = jnp.where(bad, jnp.nan, 0.0)[:, None]
+    return pos + nan, quat + nan
+
+
+# ----------------------------------------------------------------------------------------------
+# causal extrapolators: alpha-beta on R^3 x SO(3), One Euro + linear extrapolation, snapshot
+# interpolation, IMM extrapolation
+# ----------------------------------------------------------------------------------------------
+
+
+def _latest_valid(times, valid, render_times):
+    """Index of the last valid row with ``t <= tau`` per render time (``-1`` when none)."""
+    n = times.shape[0]
+    k = jnp.searchsorted(times, render_times, side="right") - 1
+    last = lax.cummax(jnp.where(valid, jnp.arange(n), -1), axis=0)
+    return jnp.where(k >= 0, last[jnp.clip(k, 0, n - 1)], -1)
+
+
+def _extrapolate(times, valid_p, valid_q, xs, vs, qs, ws, render_times):
+    """``x_i + v_i (tau - t_i)`` and ``exp(w_i (tau - t_i)) q_i`` from the latest valid row
+    ``i`` of each channel (NaN before the first)."""
+    out = []
+    for valid, kind in ((valid_p, "p"), (valid_q, "q")):
+        i = _latest_valid(times, valid, render_times)
+        j = jnp.clip(i, 0, times.shape[0] - 1)
+        dt = (render_times - times[j]).astype(xs.dtype)[:, None]
+        if kind == "p":
+            val = xs[j] + vs[j] * dt
+        else:
+            val = quat_normalize(quat_mul(quat_from_rotvec(ws[j] * dt), qs[j]))
+        out.append(jnp.where((i >= 0)[:, None], val, jnp.asarray(jnp.nan, xs.dtype)))
+    return out[0], out[1]
+
+
+@jax.jit
+def alpha_beta(
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    quaternions: Float[ArrayLike, "n 4"],
+    render_times: Float[ArrayLike, " m"],
+    *,
+    alpha: float | Float[ArrayLike, ""] = 0.5,
+    beta: float | Float[ArrayLike, ""] | None = None,
+) -> tuple[Float[Array, "m 3"], Float[Array, "m 4"]]:
+    """Fixed-gain alpha-beta filter on positions and on SO(3), with linear extrapolation (causal).
+
+    Per channel and valid measurement ``z`` at ``t`` (``Te = t - t_prev``): the first sample
+    sets the estimate, the second the velocity by the two-point difference; afterwards
+    ``x^- = x + v Te``, ``r = z - x^-``, ``x = x^- + alpha r``, ``v += beta r / Te``. On SO(3) the
+    same in the world-frame tangent space: ``q^- = exp(w Te) q``, ``r = log(z (q^-)^-1)``
+    (shortest arc), ``q = exp(alpha r) q^-``, ``w += beta r / Te``. A render time ``tau`` shows the
+    latest estimate extrapolated to ``tau`` (``x + v (tau - t)``, ``exp(w (tau - t)) q``).
+
+    Arguments:
+        alpha: position / angle gain in (0, 1] (the knob: smaller is smoother and later).
+        beta: velocity gain; default ``alpha^2 / (2 - alpha)`` (Benedict-Bordner, the
+            steady-state gains of a critically designed tracker).
+
+    Returns:
+        ``(positions (m, 3), quaternions (m, 4))``; NaN before a channel's first valid sample.
+        Exact on constant-velocity motion (linear positions, constant world angular velocity)
+        from the second sample on.
+    """
+    times, positions = jnp.asarray(times), jnp.asarray(positions)
+    quaternions, render_times = jnp.asarray(quaternions), jnp.asarray(render_times)
+    _check_inputs(times, positions, quaternions, render_times)
+    dtype = jnp.result_type(positions, quaternions, times)
+    t = times.astype(dtype)
+    a = jnp.asarray(alpha, dtype)
+    b = a * a / (2 - a) if beta is None else jnp.asarray(beta, dtype)
+    vp, vq = valid_rows(positions), valid_rows(quaternions)
+    ident = jnp.asarray(_IDENTITY, dtype)
+    p = jnp.where(vp[:, None], positions, 0).astype(dtype)
+    q = quat_normalize(jnp.where(vq[:, None], quaternions, ident).astype(dtype))
+
+    def step(state, inp):
+        (cp, tp, x, v), (cq, tq, qh, w) = state
+        ti, zi, ok_p, qi, ok_q = inp
+        te = ti - tp
+        xp = x + v * te
+        r = zi - xp
+        x_new = jnp.where(cp >= 2, xp + a * r, zi)
+        v_new = jnp.where(cp >= 2, v + b * safe_div(r, te),
+                          jnp.where(cp == 1, safe_div(zi - x, te), 0))
+        pos = (jnp.where(ok_p, jnp.minimum(cp + 1, 2), cp), jnp.where(ok_p, ti, tp),
+               jnp.where(ok_p, x_new, x), jnp.where(ok_p, v_new, v))
+        te = ti - tq
+        qp = quat_normalize(quat_mul(quat_from_rotvec(w * te), qh))
+        rr = quat_to_rotvec(_hemi(quat_mul(qi, quat_conj(qp))))
+        q_new = jnp.where(cq >= 2, quat_normalize(quat_mul(quat_from_rotvec(a * rr), qp)), qi)
+        r1 = quat_to_rotvec(_hemi(quat_mul(qi, quat_conj(qh))))
+        w_new = jnp.where(cq >= 2, w + b * safe_div(rr, te), jnp.where(cq == 1, safe_div(r1, te), 0))
+        rot = (jnp.where(ok_q, jnp.minimum(cq + 1, 2), cq), jnp.where(ok_q, ti, tq),
+               jnp.where(ok_q, q_new, qh), jnp.where(ok_q, w_new, w))
+        return (pos, rot), (pos[2], pos[3], rot[2], rot[3])
+
+    zero = jnp.zeros(3, dtype)
+    init = ((jnp.array(0), t[0], zero, zero), (jnp.array(0), t[0], ident, zero))
+    _, (xs, vs, qs, ws) = lax.scan(step, init, (t, p, vp, q, vq))
+    return _extrapolate(t, vp, vq, xs, vs, qs, ws, render_times.astype(dtype))
+
+
+def _hemi(q):
+    return jnp.where(q[..., :1] < 0, -q, q)
+
+
+@jax.jit
+def one_euro_extrapolation(
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    quaternions: Float[ArrayLike, "n 4"],
+    render_times: Float[ArrayLike, " m"],
+    *,
+    min_cutoff: float | Float[ArrayLike, ""] = 1.0,
+    beta: float | Float[ArrayLike, ""] = 0.0,
+    d_cutoff: float | Float[ArrayLike, ""] = 1.0,
+) -> tuple[Float[Array, "m 3"], Float[Array, "m 4"]]:
+    """One Euro filter (:func:`one_euro`) with linear extrapolation at render rate (causal).
+
+    A render time ``tau`` shows the latest filtered pose extrapolated with the filter's own
+    smoothed derivative: ``x_hat + dx_hat (tau - t)``, ``exp(w_hat (tau - t)) q_hat``. Same
+    parameters as :func:`one_euro` (the knob: ``min_cutoff``).
+    """
+    times, positions = jnp.asarray(times), jnp.asarray(positions)
+    quaternions, render_times = jnp.asarray(quaternions), jnp.asarray(render_times)
+    _check_inputs(times, positions, quaternions, render_times)
+    (xs, dxs, vp), (qs, ws, vq) = _one_euro_scan(times, positions, quaternions, min_cutoff, beta,
+                                                 d_cutoff)
+    t = times.astype(xs.dtype)
+    return _extrapolate(t, vp, vq, xs, dxs, qs, ws, render_times.astype(xs.dtype))
+
+
+def snapshot_interpolation(
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    quaternions: Float[ArrayLike, "n 4"],
+    render_times: Float[ArrayLike, " m"],
+    *,
+    config=None,
+    delay: float | None = None,
+) -> tuple[Float[Array, "m 3"], Float[Array, "m 4"]]:
+    """Snapshot interpolation (the networked-games standard), causal.
+
+    The Kalman filter (:mod:`phjax.tracking.kalman`) filters the measurements; a render time
+    ``tau`` shows the filtered poses interpolated (linear / slerp) at ``tau - delay``, clamped to
+    the latest frame time ``<= tau`` (so only frames already received are used; after dropouts
+    the pose holds). Smooth between frames, late by about ``delay``.
+
+    Arguments:
+        config: :class:`phjax.KalmanConfig` of the filter (the knob: its process noise;
+            default :data:`TUNED` ``["kalman"]`` noise).
+        delay: render delay, s (default: one camera period, the median frame interval).
+
+    Returns:
+        ``(positions (m, 3), quaternions (m, 4))``; NaN before the filter has started.
+    """
+    from .kalman import KalmanConfig
+    from .tracker import _run_recording
+
+    config = KalmanConfig(**TUNED["kalman"]) if config is None else config
+    t = np.asarray(times, np.float64)
+    if delay is None:
+        d = np.diff(t)
+        delay = float(np.median(d)) if d.size else 0.0
+    cfg = (config, float(delay))
+    return _run_recording(_snapshot_jit, cfg, times, positions, quaternions, render_times, None)
+
+
+@jax.jit
+def _snapshot_jit(cfg, t, p, q, r):
+    config, delay = cfg
+    return _snapshot_core(config, t, p, q, r, jnp.asarray(delay, t.dtype))
+
+
+def _snapshot_core(config, t, p, q, r, delay):
+    from .kalman import kalman_filter
+
+    states, _ = kalman_filter(config, t, p, q)
+    nan = jnp.where(states.initialized, 0.0, jnp.nan)[:, None]
+    fp, fq = states.x[:, :3] + nan, states.q + nan
+    k = jnp.searchsorted(t, r, side="right") - 1
+    latest = t[jnp.clip(k, 0, t.shape[0] - 1)]
+    s = jnp.minimum(r - delay, latest)
+    pos, quat = interpolate_poses(t, fp, fq, s)
+    first = jnp.argmax(states.initialized)
+    bad = (k < 0) | (r < t[first]) | ~jnp.any(states.initialized)
+    out_nan = jnp.where(bad, jnp.nan, 0.0)[:, None]
+    return pos + out_nan, quat + out_nan
+
+
+def imm_extrapolation(
+    times: Float[ArrayLike, " n"],
+    positions: Float[ArrayLike, "n 3"],
+    quaternions: Float[ArrayLike, "n 4"],
+    render_times: Float[ArrayLike, " m"],
+    *,
+    config=None,
+) -> tuple[Float[Array, "m 3"], Float[Array, "m 4"]]:
+    """Causal IMM extrapolation: the IMM filter (:mod:`phjax.tracking.imm`) without the PH stream.
+
+    Each render time shows the mode-probability-weighted mean prediction of the latest filtered
+    state (:func:`phjax.tracking.imm.imm_predict_pose`), with a jump at every camera frame, so
+    that the cost (or gain) of the smooth stream itself is visible.
+
+    Arguments:
+        config: :class:`phjax.tracking.imm.IMMConfig` (default model set).
+    """
+    from .imm import IMMConfig
+    from .tracker import _run_recording
+
+    config = IMMConfig() if config is None else config
+    return _run_recording(_imm_extrapolation_core, config, times, positions, quaternions,
+                          render_times, None)
+
+
+@jax.jit
+def _imm_extrapolation_core(config, t, p, q, r):
+    from .imm import imm_filter, imm_predict_pose
+    from .tracker import _latest_states
+
+    states, _ = imm_filter(config, t, p, q)
+    sel, before = _latest_states(t, states, r)
+    pos, quat, _, _ = jax.vmap(lambda s, tau: imm_predict_pose(config, s, tau))(sel, r)
     bad = before | ~sel.initialized
     nan = jnp.where(bad, jnp.nan, 0.0)[:, None]
     return pos + nan, quat + nan

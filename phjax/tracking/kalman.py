@@ -312,6 +312,11 @@ def _pos_model(config: KalmanConfig, dt):
 
 def _rot_model(config: KalmanConfig, w, dt):
     """Error-state transition ``F`` (6, 6) and process noise ``Q`` (6, 6) (see module docs)."""
+    return _rot_matrices(config.rot_process_noise, w, dt)
+
+
+def _rot_matrices(rot_process_noise, w, dt):
+    """:func:`_rot_model` for the angular-acceleration spectral density ``rot_process_noise``."""
     phi = w * dt
     k = _hat(phi)
     k2 = k @ k
@@ -321,7 +326,7 @@ def _rot_model(config: KalmanConfig, w, dt):
     rot = eye + c0 * k + c1 * k2
     jl = eye + c1 * k + c2 * k2
     f = _block(rot, jl * dt, zero, eye)
-    qr = jnp.asarray(config.rot_process_noise, w.dtype)
+    qr = jnp.asarray(rot_process_noise, w.dtype)
     dt2, dt3 = dt * dt, dt * dt * dt
     q_tt = dt3 / 3 * eye + d2 * dt3 * k2
     q_tw = dt2 / 2 * eye + d1 * dt2 * k2 + c2 * dt2 * k

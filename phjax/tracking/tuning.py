@@ -69,7 +69,9 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._misc import safe_div, safe_sqrt
+from .imm import IMMConfig
 from .kalman import KalmanConfig
+from .models import ConstantAcceleration, ConstantVelocity
 from ..quaternion import quat_conj, quat_geodesic_distance, quat_mul, quat_normalize, quat_to_rotvec
 from ..motion.simulate import SensorModel
 from ._batch import _lost_padding_frames
@@ -146,7 +148,7 @@ def tunable_parameters(config: TrackerConfig | None = None) -> tuple[str, ...]:
     ``"pos_process_noise"``) are used when unique, dotted paths (``"kalman.x"``) otherwise;
     both forms are accepted wherever a parameter name is expected.
     """
-    return tuple(_names(_leaf_paths(TrackerConfig() if config is None else config)))
+    return tuple(_names(_leaf_paths(TrackerConfig(imm=None) if config is None else config)))
 
 
 def _resolve(config: TrackerConfig, parameters: Sequence[str]) -> tuple[tuple[str, ...], ...]:
@@ -578,7 +580,7 @@ def make_problem(
     normalize: bool = True,
 ) -> TuningProblem:
     """A :class:`TuningProblem` (validates the parameter names and positivity)."""
-    config = TrackerConfig() if config is None else config
+    config = TrackerConfig(imm=None) if config is None else config
     parameters = (parameters,) if isinstance(parameters, str) else tuple(parameters)
     paths = _resolve(config, parameters)
     _check_positive(config, paths)
@@ -819,7 +821,7 @@ def tune_tracker(
         data = prepare_recordings(recordings, **prepare_kwargs)
     if max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
-    base = TrackerConfig() if config is None else config
+    base = TrackerConfig(imm=None) if config is None else config
     problem = make_problem(data, lam=lam, config=base, parameters=parameters,
                            position_weight=position_weight, rotation_weight=rotation_weight,
                            normalize=normalize)
@@ -874,16 +876,54 @@ def config_to_dict(config: TrackerConfig, metadata: dict | None = None) -> dict:
     field (format tag, version, ``"tracker"`` and ``"kalman"`` sections, optional
     ``"metadata"``)."""
     tracker = {n: _jsonable(getattr(config, n))
-               for n in _field_names(TrackerConfig) if n != "kalman"}
+               for n in _field_names(TrackerConfig) if n not in ("kalman", "imm")}
     kalman = {n: _jsonable(getattr(config.kalman, n)) for n in _field_names(KalmanConfig)}
-    out = {"format": CONFIG_FORMAT, "version": CONFIG_VERSION, "tracker": tracker, "kalman": kalman}
+    out = {"format": CONFIG_FORMAT, "version": CONFIG_VERSION, "tracker": tracker, "kalman": kalman,
+           "imm": _imm_to_dict(config.imm)}
     if metadata:
         out["metadata"] = json.loads(json.dumps(metadata, default=_jsonable))
     return out
 
 
+_MODEL_KINDS = {"cv": ConstantVelocity, "ca": ConstantAcceleration}
+
+
+def _imm_to_dict(imm: IMMConfig | None) -> dict | None:
+    """The IMM section: models as ``{"model": "cv" | "ca", "log_q": log density}`` and the
+    other :class:`IMMConfig` fields; ``None`` for the single-model filter."""
+    if imm is None:
+        return None
+
+    def models(ms):
+        return [{"model": "cv" if isinstance(m, ConstantVelocity) else "ca",
+                 "log_q": _jsonable(m.log_q)} for m in ms]
+
+    rest = {n: _jsonable(getattr(imm, n)) for n in _field_names(IMMConfig)
+            if n not in ("position_models", "rotation_models")}
+    return {"position_models": models(imm.position_models),
+            "rotation_models": models(imm.rotation_models), **rest}
+
+
+def _imm_from_dict(sec, source: str) -> IMMConfig | None:
+    if sec is None:
+        return None
+    if not isinstance(sec, dict):
+        raise ValueError(f"{source}: 'imm' must be an object or null")
+    sec = dict(sec)
+    try:
+        kw = {}
+        for key in ("position_models", "rotation_models"):
+            if key in sec:
+                kw[key] = tuple(_MODEL_KINDS[m["model"]](log_q=float(m["log_q"]))
+                                for m in sec.pop(key))
+        return IMMConfig(**kw, **sec)
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"{source}: invalid imm section: {err}") from err
+
+
 def config_from_dict(d: dict, source: str = "<dict>") -> TrackerConfig:
-    """Inverse of :func:`config_to_dict` (missing fields take their defaults).
+    """Inverse of :func:`config_to_dict` (missing fields take their defaults; a missing ``"imm"``
+    section means the single-model filter, as in files written before the IMM existed).
 
     Raises:
         ValueError: wrong format tag or version, unknown sections or fields, bad values.
@@ -897,11 +937,12 @@ def config_from_dict(d: dict, source: str = "<dict>") -> TrackerConfig:
     if version != CONFIG_VERSION:
         raise ValueError(f"{source}: unsupported configuration version {version!r} "
                          f"(this phjax reads version {CONFIG_VERSION})")
-    extra = set(d) - {"format", "version", "tracker", "kalman", "metadata"}
+    extra = set(d) - {"format", "version", "tracker", "kalman", "imm", "metadata"}
     if extra:
         raise ValueError(f"{source}: unknown top-level key(s) {sorted(extra)}")
     sections = {}
-    for key, cls, skip in (("tracker", TrackerConfig, {"kalman"}), ("kalman", KalmanConfig, set())):
+    for key, cls, skip in (("tracker", TrackerConfig, {"kalman", "imm"}),
+                           ("kalman", KalmanConfig, set())):
         sec = d.get(key, {})
         if not isinstance(sec, dict):
             raise ValueError(f"{source}: '{key}' must be an object")
@@ -916,7 +957,9 @@ def config_from_dict(d: dict, source: str = "<dict>") -> TrackerConfig:
         sections[key] = sec
     try:
         kalman = KalmanConfig(**sections["kalman"])
-        return TrackerConfig(kalman=kalman, **sections["tracker"])
+        # no "imm" section: a file from before the IMM, i.e. the single-model stream
+        imm = _imm_from_dict(d.get("imm"), source)
+        return TrackerConfig(kalman=kalman, imm=imm, **sections["tracker"])
     except (TypeError, ValueError) as err:
         raise ValueError(f"{source}: invalid configuration: {err}") from err
 

@@ -51,7 +51,7 @@ def test_stream_equals_pure_functions(meas, dtype, model):
     world-frame velocities, segment starts, accuracy against ground truth and the Kalman
     baseline) and tests/tracking/test_kalman.py (filterpy)."""
     mt, mp, mq = meas
-    cfg = pj.TrackerConfig(kalman=pj.KalmanConfig(model=model), horizon=0.035)
+    cfg = pj.TrackerConfig(kalman=pj.KalmanConfig(model=model), imm=None, horizon=0.035)
     s = pj.TrackerStream(cfg, dtype=dtype)
     ref = pj.tracker_init(cfg, 0.0, dtype)
     tol = 1e-12 if dtype == jnp.float64 else 2e-5

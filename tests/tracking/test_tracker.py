@@ -102,7 +102,7 @@ def test_segment_starts_at_the_rendered_state_and_correction_decays(head):
     documented critically damped law (c0 (1 + s) + c0' t) exp(-s), s = t / (horizon / 5), at the
     knot (0.4 horizon), the stream is C1 there and reaches the prediction at the horizon."""
     _, _, _, mt, mp, mq = head
-    cfg = pj.TrackerConfig()
+    cfg = pj.TrackerConfig(imm=None)  # the single-model filter: predict_pose below
     h = cfg.horizon
     T, t1 = h / 5, 0.4 * h
     e = np.exp(-2.0)  # s = t1 / T = 2
@@ -201,7 +201,7 @@ def test_config_arrays_and_small_state_buffers(head):
     all frames); every state array has at most 64 elements (XLA's CPU runtime runs a call's
     kernels in the calling thread only when every buffer has at most 512 bytes)."""
     _, _, _, mt, mp, mq = head
-    cfg = pj.TrackerConfig()
+    cfg = pj.TrackerConfig(imm=None)  # the IMM state has (3, 6, 6) covariances
     cfga = pj.tracker_config_arrays(cfg, jnp.float64)
     assert all(isinstance(x, jax.Array) and x.dtype == jnp.float64 for x in jax.tree.leaves(cfga))
     s1 = s2 = pj.tracker_init(cfg, 0.0, jnp.float64)

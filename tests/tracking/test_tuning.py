@@ -46,7 +46,7 @@ def problem(data):
 
 
 def _y0(problem):
-    return problem.params_from_config(pj.TrackerConfig())
+    return problem.params_from_config(pj.TrackerConfig(imm=None))
 
 
 # --------------------------------------------------------------------------- loss and metrics
@@ -122,7 +122,7 @@ def test_gradient_matches_central_differences(problem):
                         - float(problem.value_and_grad(y0 - e)[0])) / (2 * h))
         return np.asarray(out)
 
-    generic = pj.TrackerConfig(horizon=0.0287, kalman=pj.KalmanConfig(
+    generic = pj.TrackerConfig(imm=None, horizon=0.0287, kalman=pj.KalmanConfig(
         pos_process_noise=0.021, rot_process_noise=0.37, pos_meas_noise=0.0061,
         rot_meas_noise=0.013))
     y0 = problem.params_from_config(generic)
@@ -180,7 +180,7 @@ def test_ask_tell_bfgs_matches_optimistix_minimise():
 
 
 def test_tuning_decreases_loss_from_bad_start(data):
-    bad = pj.TrackerConfig(kalman=pj.KalmanConfig(pos_process_noise=3.0, rot_process_noise=30.0,
+    bad = pj.TrackerConfig(imm=None, kalman=pj.KalmanConfig(pos_process_noise=3.0, rot_process_noise=30.0,
                                                   pos_meas_noise=0.05, rot_meas_noise=0.002),
                            horizon=0.2)
     seen = []
@@ -240,7 +240,24 @@ def test_save_load_roundtrip(tmp_path_factory, model, gate, values):
     assert d["version"] == tuning.CONFIG_VERSION and d["metadata"] == {"lambda": 0.3}
     # every field of both configs is written
     assert set(d["kalman"]) == {f.name for f in dataclasses.fields(pj.KalmanConfig)}
-    assert set(d["tracker"]) | {"kalman"} == {f.name for f in dataclasses.fields(pj.TrackerConfig)}
+    assert set(d["tracker"]) | {"kalman", "imm"} == {f.name for f in dataclasses.fields(pj.TrackerConfig)}
+
+
+def test_save_load_roundtrip_imm(tmp_path):
+    from phjax.tracking.imm import IMMConfig
+    from phjax.tracking.models import ConstantAcceleration, ConstantVelocity
+
+    imm = IMMConfig(position_models=(ConstantVelocity.from_q(0.01), ConstantAcceleration.from_q(7.0)),
+                    rotation_models=(ConstantVelocity.from_q(0.2),), log_switch_rate=0.3,
+                    pos_meas_noise=0.004)
+    for cfg in (pj.TrackerConfig(imm=imm, horizon=0.04), pj.TrackerConfig(imm=None)):
+        tuning.save_config(tmp_path / "c.json", cfg)
+        assert tuning.load_config(tmp_path / "c.json") == cfg
+    d = tuning.config_to_dict(pj.TrackerConfig(imm=imm))
+    d["imm"]["position_models"][0]["model"] = "xyz"
+    (tmp_path / "bad.json").write_text(json.dumps(d))
+    with pytest.raises(ValueError, match="invalid imm section"):
+        tuning.load_config(tmp_path / "bad.json")
 
 
 def test_load_config_errors(tmp_path):
@@ -264,7 +281,8 @@ def test_load_config_errors(tmp_path):
     with pytest.raises(ValueError, match="not valid JSON"):
         tuning.load_config(tmp_path / "bad.json")
     partial = {"format": tuning.CONFIG_FORMAT, "version": 1, "tracker": {"horizon": 0.05}}
-    assert tuning.config_from_dict(partial) == pj.TrackerConfig(horizon=0.05)  # defaults fill in
+    # defaults fill in; no "imm" section: the single-model stream (files from before the IMM)
+    assert tuning.config_from_dict(partial) == pj.TrackerConfig(horizon=0.05, imm=None)
 
 
 # --------------------------------------------------------------------------------------- CLI
