@@ -7,6 +7,9 @@ instead of compiling. Folder: ``$PHJAX_CACHE_DIR``, else ``$XDG_CACHE_HOME/phjax
 
 Only :func:`phjax.cli.main` turns the cache on, for the duration of one command, and restores
 JAX's previous settings afterwards (so calling ``main`` from Python leaves no global change).
+Before the first compilation of a command's first successful run with this JAX version (an
+empty marker file ``.phjax-ran-<command>-jax<version>`` in the folder records later ones) one
+line on stderr says that compiling takes a while.
 """
 
 from __future__ import annotations
@@ -17,7 +20,8 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["MIN_COMPILE_SECONDS", "cache_dir", "cache_disabled", "compilation_cache"]
+__all__ = ["MIN_COMPILE_SECONDS", "CacheSession", "cache_dir", "cache_disabled",
+           "compilation_cache"]
 
 #: programs that took less than this to compile are not written to the cache (JAX's default,
 #: 1 s, would leave out most of the tracker's and the evaluation's programs)
@@ -42,42 +46,59 @@ def cache_disabled(no_cache: bool = False) -> bool:
     return bool(no_cache) or env not in ("", "0", "false", "no", "off")
 
 
+class CacheSession:
+    """The cache of one command: ``path`` (``None`` when off) and :meth:`mark_ran`."""
+
+    def __init__(self, path: Path | None, marker: Path | None):
+        self.path = path
+        self._marker = marker
+
+    def mark_ran(self) -> None:
+        """Record a successful run of the command (no more first-run note); only when the
+        command wrote to the cache folder, which is never created for it."""
+        if self._marker is not None and self._marker.parent.is_dir():
+            with contextlib.suppress(OSError):
+                self._marker.touch()
+
+
 @contextlib.contextmanager
-def compilation_cache(enabled: bool = True, hint: bool = True) -> Iterator[Path | None]:
+def compilation_cache(enabled: bool = True, command: str = "phjax",
+                      hint: bool = True) -> Iterator[CacheSession]:
     """Turn JAX's persistent compilation cache on for the ``with`` block.
 
     Arguments:
-        enabled: ``False``: do nothing (yields ``None``).
-        hint: print one line on stderr before the first compilation when the cache folder is
-            empty (a first run: compiling takes a while).
+        enabled: ``False``: change nothing (the session's ``path`` is ``None``).
+        command: the command's name, for the first-run note.
+        hint: print one line on stderr before the first compilation of a command that has not
+            run successfully with this cache folder and JAX version (compiling takes a while).
 
     Yields:
-        The cache folder (created by JAX on the first compilation), or ``None``.
+        A :class:`CacheSession`; the cache folder is created by JAX on the first write.
     """
     if not enabled:
-        yield None
+        yield CacheSession(None, None)
         return
     import jax
     import jax.monitoring
     from jax.experimental.compilation_cache import compilation_cache as cc
 
     path = cache_dir()
-    first_run = not path.is_dir() or not any(path.iterdir())
+    marker = path / f".phjax-ran-{command}-jax{jax.__version__}"
     previous = {name: getattr(jax.config, name) for name in _CONFIG}
-    state = {"hinted": not (hint and first_run)}
+    state = {"hinted": not hint or marker.exists()}
 
     def on_event(event: str, **_):
         if event == "/jax/compilation_cache/compile_requests_use_cache" and not state["hinted"]:
             state["hinted"] = True
-            print(f"phjax: compiling (first run; cached in {path}, later runs start faster) ...",
-                  file=sys.stderr, flush=True)
+            print(f"phjax: compiling (first run of '{command}'; cached in {path}, later runs "
+                  "start faster) ...", file=sys.stderr, flush=True)
 
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
     cc.reset_cache()  # a cache another folder initialised earlier in this process
     jax.monitoring.register_event_listener(on_event)
     try:
-        yield path
+        yield CacheSession(path, marker)
     finally:
         jax.monitoring.unregister_event_listener(on_event)
         for name, value in previous.items():

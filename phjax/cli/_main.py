@@ -185,7 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     from ..io import TrajectoryWarning
     from ._cache import cache_disabled, compilation_cache
 
-    with warnings.catch_warnings(), compilation_cache(not cache_disabled(args.no_cache)):
+    enabled = not cache_disabled(args.no_cache)
+    with warnings.catch_warnings(), compilation_cache(enabled, args.command) as cache:
         previous = warnings.showwarning
 
         def one_line(message, category, filename, lineno, file=None, line=None):
@@ -197,7 +198,10 @@ def main(argv: list[str] | None = None) -> int:
 
         warnings.showwarning = one_line
         try:
-            return args.func(args)
+            status = args.func(args)
+            if status == 0:
+                cache.mark_ran()
+            return status
         except (ValueError, OSError) as err:
             print(f"phjax {args.command}: error: {format_user_error(err)}", file=sys.stderr)
             return 2

@@ -73,10 +73,11 @@ def test_first_run_compiles_with_a_note_second_run_loads(cache_env, tmp_path, ca
     jax.clear_caches()  # nothing compiled in memory: the run compiles (or loads) everything
     assert main(argv) == 0
     err = capsys.readouterr().err
-    assert f"phjax: compiling (first run; cached in {cache_env}" in err
+    assert f"phjax: compiling (first run of 'demo-curve'; cached in {cache_env}" in err
     assert len(err.strip().splitlines()) == 1
-    written = sorted(Path(cache_env).iterdir())
+    written = sorted(p for p in Path(cache_env).iterdir() if not p.name.startswith("."))
     assert written, "compiled programs are written to the cache folder"
+    assert any(p.name.startswith(".phjax-ran-demo-curve-") for p in Path(cache_env).iterdir())
     hits = []
 
     def count(event, **_):
@@ -91,3 +92,36 @@ def test_first_run_compiles_with_a_note_second_run_loads(cache_env, tmp_path, ca
         jax.monitoring.unregister_event_listener(count)
     assert "compiling" not in capsys.readouterr().err  # not a first run any more
     assert len(hits) >= len(written), (len(hits), len(written))  # every written program loaded
+
+
+def test_first_run_note_once_per_command(cache_env, monkeypatch, capsys):
+    """The note comes before the first compilation of a command's first successful run (a
+    marker in the cache folder records the run), so a command run after another still gets
+    it; a failed run does not count."""
+    import phjax.cli._tracking as cli_tracking
+
+    calls = []
+
+    def compiling_stub(status):
+        def stub(args):
+            calls.append(args.command)
+            jax.clear_caches()
+            jax.jit(lambda x: x * len(calls))(1.0).block_until_ready()
+            return status
+        return stub
+
+    monkeypatch.setattr(cli_main, "cmd_demo_curve", compiling_stub(0))
+    monkeypatch.setattr(cli_tracking, "cmd_smooth", compiling_stub(1))
+
+    def note(argv):
+        main(argv)
+        return "phjax: compiling (first run" in capsys.readouterr().err
+
+    assert note(["demo-curve"])
+    cache_env.mkdir(exist_ok=True)  # as JAX's first write would (the tiny program is not stored)
+    main(["demo-curve"])
+    capsys.readouterr()
+    assert not note(["demo-curve"])
+    smooth = ["smooth", "in.txt", "-o", "out.txt"]
+    assert note(smooth)
+    assert note(smooth)  # its run failed (status 1): still a first run
