@@ -24,7 +24,9 @@ Adaptive settling. When measurements arrive less often than the tracker's ``hori
 front-end), a correction applied within ``horizon`` would be a visible step. With
 ``adaptive=True`` the runner sets ``horizon`` to the measured interval between good
 measurements (its running mean, or the last interval if longer, as after a lost face; at least
-the configured value, at most 0.5 s) and ``coast_time`` to 1.5 times that, so the stream settles on each prediction just before the next measurement and
+the configured value, at most 0.5 s) and ``coast_time`` to 1.5 times the horizon (a longer
+horizon was tried: 1.5 intervals made the prediction overshoot more and the steps no
+smaller), so the stream settles on each prediction just before the next measurement and
 does not stop between measurements (changing these values does not recompile).
 
 Never NaN: before the first good measurement nothing is sent; afterwards a non-finite sample
