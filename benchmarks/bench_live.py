@@ -1,6 +1,6 @@
 """Live runner timing: render-interval jitter and sample age while the front-end works.
 
-    python benchmarks/bench_live.py [--seconds 8] [--rates 120 250] [--model-dir DIR]
+    python benchmarks/bench_live.py [--seconds 8] [--rates 120 250] [--model-dir DIR] [--realtime]
 
 For each render rate, ``phjax.live.LiveTracker`` runs (real clock, one opentrack output to a
 loopback listener) on two sources:
@@ -61,9 +61,10 @@ def _poses(seconds: float):
     return PoseReplaySource(t, p, q, name="poses")
 
 
-def run(source, rate: float, seconds: float) -> dict:
+def run(source, rate: float, seconds: float, realtime: bool = False) -> dict:
     port, close = _listener()
-    lt = LiveTracker(source, [f"opentrack://127.0.0.1:{port}"], rate=rate, duration=seconds)
+    lt = LiveTracker(source, [f"opentrack://127.0.0.1:{port}"], rate=rate, duration=seconds,
+                     realtime=realtime)
     try:
         lt.run()
     finally:
@@ -88,6 +89,8 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=8.0)
     ap.add_argument("--rates", type=float, nargs="+", default=[120.0, 250.0])
     ap.add_argument("--model-dir", default=None, help="YuNet model cache")
+    ap.add_argument("--realtime", action="store_true",
+                    help="render thread under SCHED_FIFO (as phjax live --realtime)")
     args = ap.parse_args()
     n_frames = int(30 * (args.seconds + 2)) + 3
     rows = []
@@ -95,10 +98,10 @@ def main() -> None:
         for name in ("synthetic", "poses"):
             src = (open_source(f"synthetic:{n_frames}", model_dir=args.model_dir)
                    if name == "synthetic" else _poses(args.seconds))
-            rows.append((rate, name, run(src, rate, args.seconds)))
+            rows.append((rate, name, run(src, rate, args.seconds, args.realtime)))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"\nlive runner, {args.seconds:g} s per row, {os.cpu_count()} CPUs, load average "
-          f"{load:.1f}")
+          f"{load:.1f}, realtime {args.realtime}")
     print(f"{'rate':>5} {'source':>9} {'poses/s':>7} {'sent/s':>7} {'iv p50':>7} {'iv p99':>7} "
           f"{'iv max':>7} {'jit p50':>7} {'jit p99':>7} {'missed':>6} {'age p50':>7} "
           f"{'age p99':>7}")

@@ -17,14 +17,18 @@ filter with the measurement at its true time ``t_c`` but starts the new render s
 ``t_a`` from the pose being rendered then (a plain update at ``t_c`` would start the segment in
 the past, so the correction it applies over the elapsed ``t_a - t_c`` would appear at once as
 a jump). It calls the tracker's own update at ``t_a`` with the filter's prediction as the
-measurement (zero innovation, so the filter's mean is unchanged) and then restores the
-filter's covariance, so no information is counted twice.
+measurement (zero innovation: the render segment is built from the unchanged prediction) and
+then puts back the filter's posterior at ``t_c``, so no information is counted twice and the
+next measurement is filtered at its own capture time. The first measurement is a plain update
+(nothing has been rendered before it).
 
 Adaptive settling. When measurements arrive less often than the tracker's ``horizon`` (a slow
 front-end), a correction applied within ``horizon`` would be a visible step. With
 ``adaptive=True`` the runner sets ``horizon`` to the measured interval between good
 measurements (its running mean, or the last interval if longer, as after a lost face; at least
-the configured value, at most 0.5 s) and ``coast_time`` to 1.5 times that, so the stream settles on each prediction just before the next measurement and
+the configured value, at most 0.5 s) and ``coast_time`` to 1.5 times the horizon (a longer
+horizon was tried: 1.5 intervals made the prediction overshoot more and the steps no
+smaller), so the stream settles on each prediction just before the next measurement and
 does not stop between measurements (changing these values does not recompile).
 
 Never NaN: before the first good measurement nothing is sent; afterwards a non-finite sample

@@ -6,10 +6,11 @@ gave none). :func:`open_source` parses the ``SOURCE`` argument of ``phjax live``
 
 ``synthetic[:N[:SEED]]``
     the rendered synthetic head (:func:`phjax.vision.open_rgbd`), paced at its frame rate and
-    run through the RGB-D front-end (:class:`phjax.vision.HeadPoseEstimator`). Rendering a
-    frame costs far more than a real camera (~0.1-0.2 s of CPU), so on a small machine the
-    front-end sees only a few frames per second: the others are skipped, as late frames of a
-    real camera would be.
+    run through the RGB-D front-end (:class:`phjax.vision.HeadPoseEstimator`). Rendering is
+    treated as the camera's work (the frame due when rendering ends is rendered, then
+    delivered at its timestamp), but it still takes CPU time (~0.1-0.2 s a frame), so on a
+    small machine the front-end sees only a few frames per second: the others are skipped,
+    as late frames of a real camera would be.
 an RGB-D recording
     any folder :func:`phjax.vision.open_rgbd` accepts (Biwi, TUM RGB-D, colour + depth),
     replayed at its own timestamps through the same front-end.
@@ -150,24 +151,6 @@ class PoseReplaySource(Source):
 
 
 # ------------------------------------------------------------------------------- RGB-D
-def _paced_frames(clock, t0, stop, stamps):
-    """Indices of the frames to process: wait for each frame's time; when processing has
-    fallen behind, skip to the newest frame already due. Yields ``(index, capture time)``."""
-    stamps = np.asarray(stamps, np.float64)
-    rel = stamps - stamps[0]
-    i = 0
-    n = rel.shape[0]
-    while i < n and not stop.is_set():
-        clock.sleep_until(t0 + rel[i], stop)
-        if stop.is_set():
-            return
-        # newest frame already due
-        due = int(np.searchsorted(rel, clock.now() - t0, side="right")) - 1
-        i = max(i, min(due, n - 1))
-        yield i, t0 + rel[i]
-        i += 1
-
-
 class RGBDReplaySource(Source):
     """An RGB-D sequence (:class:`phjax.vision.RGBDSequence`) paced at its timestamps and run
     through :class:`phjax.vision.HeadPoseEstimator`.
@@ -202,9 +185,24 @@ class RGBDReplaySource(Source):
         self.estimator.reset()
 
     def run(self, clock, t0, stop, emit) -> None:
-        for i, t in _paced_frames(clock, t0, stop, self.sequence.timestamps):
-            r = self.estimator.process_frame(self.sequence[i])
-            emit(Measurement(t, r.position, r.quaternion, r.status.name))
+        # Loading a frame (rendering the synthetic head, reading files) is the camera's work,
+        # not the front-end's: the frame that will be due when loading ends is loaded, then
+        # delivered at its timestamp, so the measured latency is the front-end's.
+        rel = np.asarray(self.sequence.timestamps, np.float64)
+        rel = rel - rel[0]
+        n, i, load_est = rel.shape[0], 0, 0.0
+        while i < n and not stop.is_set():
+            t_start = clock.now()
+            due = int(np.searchsorted(rel, t_start - t0 + load_est, side="right")) - 1
+            i = max(i, min(due, n - 1))
+            frame = self.sequence[i]
+            load_est = 0.7 * load_est + 0.3 * (clock.now() - t_start)
+            clock.sleep_until(t0 + rel[i], stop)
+            if stop.is_set():
+                return
+            r = self.estimator.process_frame(frame)
+            emit(Measurement(t0 + rel[i], r.position, r.quaternion, r.status.name))
+            i += 1
 
 
 def _with_models(make):
