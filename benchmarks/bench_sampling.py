@@ -95,13 +95,18 @@ def _fill_runner(shape, dtype, sharding=None):
     import jax
     import jax.numpy as jnp
 
-    fill = jax.jit(lambda b: jnp.full_like(b, 1.0), donate_argnums=0)
+    # keep_unused: the buffer is only donated, never read (an unused argument would be pruned
+    # and the fill would write fresh memory on every call)
+    fill = jax.jit(lambda b: jnp.full_like(b, 1.0), donate_argnums=0, keep_unused=True,
+                   out_shardings=sharding)
     state = {"buf": jnp.zeros(shape, dtype) if sharding is None
              else jax.device_put(jnp.zeros(shape, dtype), sharding)}
 
     def run():
-        state["buf"] = fill(state["buf"])
+        old = state["buf"]
+        state["buf"] = fill(old)
         state["buf"].block_until_ready()
+        assert old.is_deleted()  # written in place
 
     return run
 

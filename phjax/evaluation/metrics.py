@@ -52,7 +52,8 @@ __all__ = [
 
 
 class Metric(NamedTuple):
-    """A scalar metric and the number of samples (or windows) it was computed from."""
+    """A scalar metric and the number of samples (or windows) it was computed from (arrays of
+    the batch shape for a batch of recordings)."""
 
     value: float
     count: int

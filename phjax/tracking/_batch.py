@@ -129,6 +129,14 @@ def run_batch(kind, config, times, positions, quaternions, render_times, dtype):
     dtype = jnp.dtype(jnp.zeros((), float).dtype if dtype is None else dtype).name
     args = (config, times, positions, quaternions, render_times)
     sharding = _leading_sharding(args[1:])
+    if sharding is not None:
+        from ..batch import _is_batch_sharded
+
+        need = args[1:4] if render_times.ndim == 1 else args[1:]
+        if not all(_is_batch_sharded(x, sharding) for x in need):
+            raise ValueError("a sharded batch needs times, positions, quaternions (and per-"
+                             "recording render times) all sharded along axis 0 on the same "
+                             "mesh: shard them together with phjax.batch.shard_batch")
     static = {"kind": kind, "dtype": dtype}
     fn = _local_jit if sharding is None else _sharded_function(_local, sharding, args, static)
     key = (jax.tree.structure(config), kind, dtype,

@@ -46,6 +46,11 @@ def main(path: str) -> None:
         p, q = fn(*batch)
         out[name] = {"position": layout(p), "quaternion": layout(q),
                      "diff": max(diff(p, d[name + "_p"]), diff(q, d[name + "_q"]))}
+    try:  # only part of the batch sharded: a clear error, before any compilation
+        pj.track(batch[0], d["positions"], d["quaternions"], d["render_times"])
+        out["partial_error"] = ""
+    except ValueError as err:
+        out["partial_error"] = str(err)
     rng = np.random.default_rng(1)
     ends = [rng.normal(size=(8, 3)) for _ in range(4)]
     curves = pj.hermite_quintic(*ends)

@@ -95,6 +95,7 @@ def test_sharded_batch_equals_one_at_a_time(tmp_path):
     res = json.loads(proc.stdout.strip().splitlines()[-1])
     print(json.dumps(res))
     assert res["num_devices"] == 4
+    assert "shard_batch" in res["partial_error"]
     for name in ("track", "reconstruct"):
         for out, dim in (("position", 3), ("quaternion", 4)):
             lay = res[name][out]
