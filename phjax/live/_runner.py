@@ -59,9 +59,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._np_quat import np_qconj, np_qmul
-from ..tracking.kalman import KalmanConfig, kalman_step, predict_pose
+from ..tracking.kalman import KalmanConfig
 from ..tracking.stream import TrackerStream, _Layout
-from ..tracking.tracker import TrackerConfig, tracker_update
+from ..tracking.tracker import TrackerConfig, _filter_predict, _filter_step, tracker_update
 from ._clock import RealClock, VirtualClock
 from ._outputs import Output, TumLog, open_output
 from ._sources import Measurement, Source, open_source
@@ -72,12 +72,11 @@ __all__ = ["LiveStream", "LiveTracker", "Sample", "live_tracker_config"]
 # ------------------------------------------------------------------------------- stream
 def _late_update(config: TrackerConfig, state, t_meas, t_now, position, quaternion):
     """Filter at the capture time ``t_meas``, render segment from ``t_now`` (module docs)."""
-    k = config.kalman
     fresh = ~state.filter.initialized
-    kf, info = kalman_step(k, state.filter, t_meas, position, quaternion)
+    kf, info = _filter_step(config, state.filter, t_meas, position, quaternion)
     used = info.pos_used | info.rot_used
     t_now = jnp.maximum(jnp.asarray(t_now, kf.t.dtype), kf.t)
-    p_now, q_now, _, _ = predict_pose(k, kf, t_now)
+    p_now, q_now, _, _ = _filter_predict(config, kf, t_now)
     seeded = eqx.tree_at(lambda s: s.filter, state, kf)
     choose = lambda c, a, b: jax.tree.map(lambda x, y: jnp.where(c, x, y), a, b)
     # first measurement: a plain update (nothing was rendered before, no jump to avoid);
@@ -145,14 +144,16 @@ def live_tracker_config(depth_free: bool = False, base: TrackerConfig | None = N
                         ) -> TrackerConfig:
     """The tracker config of a live source.
 
-    ``base`` (default :class:`TrackerConfig()` with the innovation gate
-    :data:`LIVE_GATE_NIS`, so that a gross front-end error, e.g. a misaligned frame, is
-    rejected instead of swinging the view), with the monocular measurement noise
+    ``base`` (default: :class:`TrackerConfig` with the single-model Kalman filter
+    (``imm=None``) and its innovation gate :data:`LIVE_GATE_NIS`, so that a gross front-end
+    error, e.g. a misaligned frame, is rejected instead of swinging the view; the IMM filter
+    has no gate yet), with the monocular measurement noise
     (:data:`phjax.vision.monocular.MONOCULAR_NOISE`) when the poses come from colour alone.
-    A given ``base`` keeps its own gate.
+    A given ``base`` keeps its own filter and gate (the monocular noise applies to the
+    single-model filter).
     """
     if base is None:
-        base = TrackerConfig(kalman=KalmanConfig(gate_nis=LIVE_GATE_NIS))
+        base = TrackerConfig(kalman=KalmanConfig(gate_nis=LIVE_GATE_NIS), imm=None)
     if not depth_free:
         return base
     from ..vision.monocular import MONOCULAR_NOISE
