@@ -24,8 +24,9 @@ metrics        phjax/evaluation/metrics.py                  tests/evaluation/tes
 =============  ===========================================  ===============================
 
 A full run has thousands of mutants and takes many hours on a laptop; ``--sample N`` draws
-``N`` mutants per module with a fixed ``--seed`` (the same mutants for the same code), and
-``-k`` narrows the tests of a module (e.g. to its fast tests).
+``N`` mutants per module with a fixed ``--seed`` (the same mutants for the same code),
+``--functions`` keeps the mutants inside the named functions, and ``-k`` narrows the tests of a
+module (e.g. to its fast tests; a survivor is then only a survivor of those tests).
 
 Before / after a change of the tests: ``--tests-from REF`` runs the tests as they were at the
 git revision ``REF`` (the library stays the working tree's), and ``--rerun-survivors DIR``
