@@ -84,15 +84,17 @@ def test_stream_packing_layout_and_state_round_trip(meas):
     the kernels in the calling thread), the config is one vector, booleans survive, and the
     state setter / getter round-trip exactly."""
     mt, mp, mq = meas
-    s = pj.TrackerStream(dtype=jnp.float64)
-    assert len(s._cvec) == 1 and s._cvec[0].shape == (len(jax.tree.leaves(pj.TrackerConfig())),)
+    # single-model filter: the IMM's (3, 6, 6) covariances are leaves of 108 elements
+    cfg = pj.TrackerConfig(imm=None)
+    s = pj.TrackerStream(cfg, dtype=jnp.float64)
+    assert len(s._cvec) == 1 and s._cvec[0].shape == (len(jax.tree.leaves(cfg)),)
     assert all(v.ndim == 1 and v.size <= 64 for v in s._packed)
     assert len(s._packed) <= len(jax.tree.leaves(s.state)) // 2
     assert not bool(s.state.started) and s.state.filter.initialized.dtype == jnp.bool_
     s.update(0.0, mp[0], mq[0])
     st = s.state
     assert bool(st.started) and bool(st.filter.initialized)
-    s2 = pj.TrackerStream(dtype=jnp.float64)
+    s2 = pj.TrackerStream(cfg, dtype=jnp.float64)
     s2.state = st
     for a, b in zip(jax.tree.leaves(s2.state), jax.tree.leaves(st)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
