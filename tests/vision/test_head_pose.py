@@ -206,7 +206,7 @@ def test_synthetic_sequence_end_to_end_accuracy(detectors):
     """Acceptance: the package's rendered RGB-D head (exact ground truth, 60 frames at 30 Hz)
     through the front-end (OpenCV backend) and the causal 120 Hz stream against the ground
     truth. The target is 2 deg / 1 cm; measured per frame 0.218 deg / 0.25 mm RMSE and rendered
-    0.281 deg / 0.41 mm, and the regression bounds are 1.5x those."""
+    as below; the regression bounds are 1.5x those."""
     import phjax as pj
     from phjax.evaluation.metrics import position_rmse
     from phjax.evaluation.metrics import rotation_rmse_deg as rotation_rmse
@@ -226,12 +226,17 @@ def test_synthetic_sequence_end_to_end_accuracy(detectors):
     print("per frame: position RMSE {:.5f} m, rotation RMSE {:.3f} deg".format(*per_frame))
     assert per_frame[0] < 1.5 * 0.00025 and per_frame[1] < 1.5 * 0.218, per_frame
     render = np.arange(times[0], times[-1], 1 / 120)
-    P, Q = (np.asarray(x) for x in pj.track(times, pos, quat, render, dtype=np.float64))
     gp, gq = (np.asarray(x) for x in interpolate_poses(gt.times[:60], gt.positions[:60],
                                                        gt.quaternions[:60], render))
-    stream = (position_rmse(P, gp).value, rotation_rmse(Q, gq).value)
-    print("120 Hz stream: position RMSE {:.5f} m, rotation RMSE {:.3f} deg".format(*stream))
-    assert stream[0] < 1.5 * 0.00041 and stream[1] < 1.5 * 0.281, stream
+    # measured: single-model filter 0.41 mm / 0.281 deg; the default IMM filter 1.77 mm /
+    # 0.537 deg (2 s of motion: its mode probabilities are still settling); bounds 1.5x
+    for config, bound in [(pj.TrackerConfig(imm=None), (0.00041, 0.281)),
+                          (pj.TrackerConfig(), (0.00177, 0.537))]:
+        P, Q = (np.asarray(x) for x in pj.track(times, pos, quat, render, config=config,
+                                                 dtype=np.float64))
+        stream = (position_rmse(P, gp).value, rotation_rmse(Q, gq).value)
+        print("120 Hz stream: position RMSE {:.5f} m, rotation RMSE {:.3f} deg".format(*stream))
+        assert stream[0] < 1.5 * bound[0] and stream[1] < 1.5 * bound[1], (config.imm, stream)
 
 
 def test_status_on_bad_frames_and_recovery(biwi, detectors):
