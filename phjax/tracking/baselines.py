@@ -396,17 +396,24 @@ def kalman_extrapolation(
                           render_times, None)
 
 
+def _predict_from_latest(t, states, r, predict):
+    """Each render time's pose predicted (``predict(state, tau)``) from the latest filter state
+    at or before it; NaN before the first initialised state. Shared by the Kalman and IMM
+    extrapolation baselines."""
+    from .tracker import _latest_states
+
+    sel, before = _latest_states(t, states, r)
+    pos, quat, _, _ = jax.vmap(predict)(sel, r)
+    nan = jnp.where(before | ~sel.initialized, jnp.nan, 0.0)[:, None]
+    return pos + nan, quat + nan
+
+
 @jax.jit
 def _kalman_extrapolation_core(config, t, p, q, r):
     from .kalman import kalman_filter, predict_pose
-    from .tracker import _latest_states
 
     states, _ = kalman_filter(config, t, p, q)
-    sel, before = _latest_states(t, states, r)
-    pos, quat, _, _ = jax.vmap(lambda s, tau: predict_pose(config, s, tau))(sel, r)
-    bad = before | ~sel.initialized
-    nan = jnp.where(bad, jnp.nan, 0.0)[:, None]
-    return pos + nan, quat + nan
+    return _predict_from_latest(t, states, r, lambda s, tau: predict_pose(config, s, tau))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -623,11 +630,6 @@ def imm_extrapolation(
 @jax.jit
 def _imm_extrapolation_core(config, t, p, q, r):
     from .imm import imm_filter, imm_predict_pose
-    from .tracker import _latest_states
 
     states, _ = imm_filter(config, t, p, q)
-    sel, before = _latest_states(t, states, r)
-    pos, quat, _, _ = jax.vmap(lambda s, tau: imm_predict_pose(config, s, tau))(sel, r)
-    bad = before | ~sel.initialized
-    nan = jnp.where(bad, jnp.nan, 0.0)[:, None]
-    return pos + nan, quat + nan
+    return _predict_from_latest(t, states, r, lambda s, tau: imm_predict_pose(config, s, tau))
