@@ -1,6 +1,7 @@
 """The accuracy / smoothness / lag frontier of every causal method, tuned on half the data.
 
-    python experiments/frontier.py [--seconds 20] [--out results/frontier] [--quick]
+    python experiments/frontier.py [--seconds 15] [--out results/frontier] [--quick]
+                                   [--render-phase 0.5]
 
 Protocol (documented tuning procedure, nothing tuned to a target number):
 
@@ -20,6 +21,16 @@ Protocol (documented tuning procedure, nothing tuned to a target number):
   third of the tuned Kalman CV extrapolation's for both position and orientation (the
   product's smoothness specification). The filters' noise is tuned like the baselines (the
   IMM's model set on the IMM extrapolation: centre, spread and switch rate).
+* **Render clock.** By default the render times are aligned with the camera clock (every
+  fourth 120 Hz sample falls on a camera frame time, as in issue 16's protocol);
+  ``--render-phase f`` offsets them by ``f`` render periods (``0.5``: halfway between, as with
+  a renderer whose clock is independent of the camera's).
+* **Per-phase RMSE.** The test-split RMSE of the main methods per render phase (time since the
+  latest camera frame, in render periods). A C1 stream cannot show a camera frame's information
+  at that frame's own time (its pose there is the limit from the left, fixed before the frame
+  arrived), whereas an extrapolator that jumps can; the phase table measures this cost, and the
+  row ``phjax stream (imm), horizon -> 0`` is the bound for any C1 stream on this filter (no
+  smoothing at all after the frame instant).
 * **Metrics** per recording: position / rotation RMSE, RMS jerk, and lag = the time shift
   ``d`` minimising the RMSE between the estimate at ``tau`` and the ground truth at ``tau - d``
   (grid of 2 ms, parabolic refinement). Ratios: per recording phjax / baseline, median over
@@ -61,8 +72,9 @@ LAGS = np.arange(-0.03, 0.1201, 0.002)
 
 
 # --------------------------------------------------------------------------------------- data
-def prepare(seconds: float, cache: Path, quick: bool):
-    """Simulated measurements and ground truth of every recording, cut to common shapes."""
+def prepare(seconds: float, cache: Path, quick: bool, phase: float = 0.0):
+    """Simulated measurements and ground truth of every recording, cut to common shapes
+    (render times offset by ``phase`` render periods from the camera clock)."""
     if cache.exists():
         z = np.load(cache, allow_pickle=True)
         return list(z["data"])
@@ -80,12 +92,12 @@ def prepare(seconds: float, cache: Path, quick: bool):
             print(f"skip {name}: {mt.shape[0]} frames < {n}")
             continue
         mt, mp, mq = mt[:n], mp[:n], mq[:n]
-        r = mt[0] + WARMUP + np.arange(m) / RENDER
+        r = mt[0] + WARMUP + (np.arange(m) + phase) / RENDER
         gp, gq = (np.asarray(x) for x in interpolate_poses(t, p, q, r, max_gap=0.1))
         # ground truth shifted by every candidate lag (for the lag metric)
         sp, sq = (np.asarray(x) for x in interpolate_poses(
             t, p, q, (r[None, :] - LAGS[:, None]).ravel(), max_gap=0.1))
-        out.append(dict(name=name, kind=kind, mt=mt, mp=mp, mq=mq, r=r, gp=gp, gq=gq,
+        out.append(dict(name=name, kind=kind, mt=mt, mp=mp, mq=mq, r=r, gp=gp, gq=gq, phase=phase,
                         sp=sp.reshape(len(LAGS), m, 3), sq=sq.reshape(len(LAGS), m, 4),
                         has_pos=bool(np.isfinite(p).any())))
         print(f"prepared {name}", flush=True)
@@ -131,6 +143,18 @@ def score(d, p, q):
     return row
 
 
+def phase_rmse(d, p, q):
+    """Position (mm) and rotation (deg) RMSE per render phase: render samples binned by the
+    number of whole render periods since the latest camera frame time (dropped frames count)."""
+    per = round(RENDER / RATE)
+    ph = np.floor((d["r"] - d["mt"][0]) * RENDER + 1e-6).astype(int) % per
+    p, q = np.asarray(p), np.asarray(q)
+    ep = np.linalg.norm(p - d["gp"], axis=-1) * 1e3 if d["has_pos"] else np.full(ph.shape, np.nan)
+    eq = _angle_deg(q, d["gq"])
+    return (np.array([_rmse(ep[ph == k]) for k in range(per)]),
+            np.array([_rmse(eq[ph == k]) for k in range(per)]))
+
+
 def run(data, fn):
     return [score(d, *fn(d["mt"], d["mp"], d["mq"], d["r"])) for d in data]
 
@@ -147,8 +171,9 @@ def _one_euro_pair(fn):
     return lambda k: (lambda t, p, q, r: fn(t, p, q, r, min_cutoff=k[0], beta=k[1]))
 
 
-SCALES = [0.1, 0.3, 1.0, 3.0, 10.0, 30.0]
-ONE_EURO = [(m, b) for b in (1.0, 10.0, 100.0) for m in (0.1, 0.3, 1.0, 3.0, 10.0)]
+# knob grids reach from heavy smoothing (for the equal-smoothness comparison) to light
+SCALES = [0.001, 0.01, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0]
+ONE_EURO = [(m, b) for b in (0.1, 1.0, 10.0, 100.0) for m in (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0)]
 
 
 def baseline_methods():
@@ -160,7 +185,7 @@ def baseline_methods():
                                                 rot_process_noise=0.3 * s))),
             "noise scale (x 0.03 m2/s3, 0.3 rad2/s3)"),
         "alpha-beta extrapolation": (
-            [0.1, 0.2, 0.3, 0.4, 0.5, 0.65, 0.8], lambda a: (
+            [0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.65, 0.8], lambda a: (
                 lambda t, p, q, r: baselines.alpha_beta(t, p, q, r, alpha=a)), "alpha"),
         "one-euro + hold": (ONE_EURO, _one_euro_pair(baselines.one_euro), "(min_cutoff, beta)"),
         "one-euro + extrapolation": (ONE_EURO, _one_euro_pair(baselines.one_euro_extrapolation),
@@ -207,6 +232,9 @@ def main(argv=None):
     ap.add_argument("--seconds", type=float, default=15.0, help="window per recording, s")
     ap.add_argument("--out", default="results/frontier", help="output folder")
     ap.add_argument("--quick", action="store_true", help="every third recording (smoke run)")
+    ap.add_argument("--render-phase", type=float, default=0.0,
+                    help="offset of the render clock from the camera clock, in render periods "
+                         "(0: aligned, as in issue 16; 0.5: halfway)")
     ap.add_argument("--plot-only", action="store_true",
                     help="redraw frontier.png from frontier.csv and tuned.json in --out")
     args = ap.parse_args(argv)
@@ -216,8 +244,8 @@ def main(argv=None):
         plot(out)
         return 0
     t0 = time.time()
-    data = prepare(args.seconds, out / f"data_{args.seconds:g}{'_quick' if args.quick else ''}.npz",
-                   args.quick)
+    tag = f"{args.seconds:g}{'_quick' if args.quick else ''}_phase{args.render_phase:g}"
+    data = prepare(args.seconds, out / f"data_{tag}.npz", args.quick, args.render_phase)
     names = [d["name"] for d in data]
     train = [i for i in range(len(data)) if i % 2 == 0]
     test = [i for i in range(len(data)) if i % 2 == 1]
@@ -344,6 +372,77 @@ def main(argv=None):
                 cells.append(f"{v:+.1f}")
                 summary[(label, split, key)] = v
             lines.append(f"| {label} | {split} | " + " | ".join(cells) + " |")
+    # equal smoothness: each baseline at its knob with the lowest train RMSE among those whose
+    # train jerk is at most that of the phjax stream's operating point (per channel)
+    op = "phjax stream (imm)"
+    lines += ["## At equal smoothness (test split)", "",
+              "Each baseline's knob re-tuned on train: lowest RMSE among the knob values whose "
+              "mean train jerk (relative to the tuned Kalman CV) is at most the phjax stream's at "
+              "its operating point. Ratio phjax / baseline (median of per-recording ratios); lag "
+              "difference phjax - baseline in ms. 'not reached' gives the smallest jerk ratio the "
+              "method's knob reaches on train.", "",
+              "| baseline | pos: knob | pos RMSE ratio | pos lag diff | rot: knob | rot RMSE ratio "
+              "| rot lag diff |", "|---|---|---|---|---|---|---|"]
+    for b in base_names:
+        cells = []
+        for key, jkey, lkey, ref, ch in (("pos", "jp", "lag_p", kf_rows, "p"),
+                                         ("rot", "jr", "lag_r", kf_rows_r, "r")):
+            limit = rel_mean(runs[(op, tuned[op][0])], ref, jkey, train)
+            grid = [k for (n, k) in runs if n == b]
+            jerks = {k: rel_mean(runs[(b, k)], ref, jkey, train) for k in grid}
+            ok = [k for k in grid if jerks[k] <= limit]
+            if not ok:
+                cells += ["not reached", f"min jerk {min(jerks.values()):.2f} (phjax {limit:.2f})",
+                          ""]
+                continue
+            k = min(ok, key=lambda k: _nan_inf(rel_mean(runs[(b, k)], hold, key, train)))
+            phj = tuned_rows(op, ch)
+            cells += [str(k), f"{med_ratio(phj, runs[(b, k)], key, test):.3f}",
+                      f"{med_diff(phj, runs[(b, k)], lkey, test):+.1f}"]
+        lines.append(f"| {b} | " + " | ".join(cells) + " |")
+    lines.append("")
+
+    # per-phase RMSE on test: what continuity costs at the camera-frame instants
+    per = round(RENDER / RATE)
+    h_op = tuned["phjax stream (imm)"][0]
+    imm_stream = dict(streams)["phjax stream (imm)"]
+
+    def stream_fn(h):
+        c = TrackerConfig(kalman=imm_stream.kalman, imm=imm_stream.imm, horizon=h)
+        return lambda t, p, q, r: track(t, p, q, r, config=c)
+
+    phase_methods = [(f"phjax stream (imm), horizon {h_op:g}", stream_fn(h_op), stream_fn(h_op)),
+                     ("phjax stream (imm), horizon -> 0", stream_fn(1e-4), stream_fn(1e-4)),
+                     ("imm extrapolation", imm_make(tuned["imm extrapolation"][0]),
+                      imm_make(tuned["imm extrapolation"][1]))]
+    phase_methods += [(m, methods[m][1](tuned[m][0]), methods[m][1](tuned[m][1]))
+                      for m in ("kalman-cv extrapolation", "alpha-beta extrapolation",
+                                "one-euro + extrapolation")]
+    lines += ["## RMSE per render phase (test split, medians over recordings)", "",
+              (f"Render phase k: samples k render periods after the latest camera frame time "
+               f"(render clock offset {args.render_phase:g} periods). Position mm / rotation deg."),
+              "", "| method | " + " | ".join(f"pos, phase {k}" for k in range(per)) + " | "
+              + " | ".join(f"rot, phase {k}" for k in range(per)) + " |",
+              "|---|" + "---|" * (2 * per)]
+    for label, fn_p, fn_r in phase_methods:
+        pp = np.array([phase_rmse(data[i], *fn_p(data[i]["mt"], data[i]["mp"], data[i]["mq"],
+                                                  data[i]["r"]))[0] for i in test])
+        rr = np.array([phase_rmse(data[i], *fn_r(data[i]["mt"], data[i]["mp"], data[i]["mq"],
+                                                  data[i]["r"]))[1] for i in test])
+        cells = [f"{np.nanmedian(pp[:, k]):.2f}" for k in range(per)]
+        cells += [f"{np.nanmedian(rr[:, k]):.3f}" for k in range(per)]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    bound = run(data, stream_fn(1e-4))
+    cells = []
+    for key, ch in (("pos", "p"), ("rot", "r")):
+        rs = {b: med_ratio(bound, tuned_rows(b, ch), key, test) for b in base_names}
+        rs = {b: v for b, v in rs.items() if np.isfinite(v)}
+        worst = max(rs, key=rs.get)
+        cells.append(f"{rs[worst]:.3f} ({worst})")
+    lines += ["", "C1 bound, test split: the stream with horizon -> 0 (no smoothing beyond "
+              "continuity) / strongest tuned baseline: position " + cells[0] + ", rotation "
+              + cells[1] + "."]
+
     lines += ["", "Train objective (mean RMSE / hold RMSE, position + rotation) of the phjax "
               "streams at their operating points: "
               + ", ".join(f"{k} {v:.4f}" for k, v in train_score.items()), "",
