@@ -28,8 +28,10 @@ Remaining motion adds about ``|x^(k)| dt^k / sqrt(sum c^2 ...)``, negligible for
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
@@ -51,8 +53,8 @@ class MeasurementNoise(eqx.Module):
         rot_windows: number of orientation windows used (0: ``rot_std`` is NaN).
     """
 
-    pos_std: Float[Array, "3"]
-    rot_std: Float[Array, "3"]
+    pos_std: Float[Array, " 3"]
+    rot_std: Float[Array, " 3"]
     pos_windows: Int[Array, ""]
     rot_windows: Int[Array, ""]
 
@@ -115,8 +117,12 @@ def estimate_measurement_noise(
     if n < k + 1:
         raise ValueError(f"need at least order + 1 = {k + 1} samples, got {n}")
     dtype = jnp.result_type(t, p, q, jnp.float32)
-    t, p, q = t.astype(dtype), p.astype(dtype), q.astype(dtype)
+    return _estimate(t.astype(dtype), p.astype(dtype), q.astype(dtype), k)
 
+
+@functools.partial(jax.jit, static_argnums=3)
+def _estimate(t, p, q, k: int) -> MeasurementNoise:
+    n, dtype = t.shape[0], t.dtype
     idx = jnp.arange(n - k)[:, None] + jnp.arange(k + 1)[None, :]  # (w, k+1)
     tw = t[idx] - t[idx[:, :1]]  # relative times keep float32 epoch stamps usable
     t_ok = jnp.all(jnp.isfinite(tw), axis=1) & jnp.all(jnp.diff(tw, axis=1) > 0, axis=1)
