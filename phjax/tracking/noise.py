@@ -21,8 +21,15 @@ are left out (dropouts are not bridged).
 What it measures is the *white* (sample-to-sample independent) part of the noise, which is what
 a filter can remove; slowly varying errors (SLAM drift) pass through the residual's high-order
 difference almost unchanged in value but are not white, and no causal filter can remove them.
-Remaining motion adds about ``|x^(k)| dt^k / sqrt(sum c^2 ...)``, negligible for head motion at
-30 Hz with ``k = 3`` (a jerk of 10 m/s^3 gives < 0.1 mm).
+Remaining motion adds the unit-norm ``k``-th difference of the trajectory, on a uniform grid
+``x^(k) dt^k / ||Delta^k||`` (for ``k = 3``: ``x''' dt^3 / sqrt(20)``), negligible for head or
+hand-held camera motion at 30 Hz (a jerk of 10 m/s^3 gives 0.08 mm).
+
+Measured (``experiments/real_stream.py``, ``tests/tracking/test_noise.py``): on the default
+simulated sensor it returns 5.06-5.29 mm / 0.91-1.01 deg (4 seeds), and the stream with it is
+within 0.2 % of the default config's RMSE; on RGBDSLAM's fr1_xyz estimate 1.46 mm / 0.075 deg
+(a maximum-likelihood fit of the IMM's innovations gives a similar 2.0 mm / 0.080 deg), on the
+motion-capture ground truth 0.083 mm / 0.036 deg.
 """
 
 from __future__ import annotations
