@@ -133,7 +133,7 @@ def estimate_measurement_noise(
 def _estimate(t, p, q, k: int) -> MeasurementNoise:
     n, dtype = t.shape[0], t.dtype
     idx = jnp.arange(n - k)[:, None] + jnp.arange(k + 1)[None, :]  # (w, k+1)
-    tw = t[idx] - t[idx[:, :1]]  # relative times keep float32 epoch stamps usable
+    tw = t[idx] - t[idx[:, :1]]  # window-relative times (the weights use differences only)
     t_ok = jnp.all(jnp.isfinite(tw), axis=1) & jnp.all(jnp.diff(tw, axis=1) > 0, axis=1)
     tw = jnp.where(t_ok[:, None], tw, jnp.arange(k + 1, dtype=dtype))  # safe dummy spacing
     diff = tw[:, :, None] - tw[:, None, :]
