@@ -60,10 +60,12 @@ from .tracking import (
     KalmanConfig,
     KalmanInfo,
     KalmanState,
+    MeasurementNoise,
     TrackerConfig,
     TrackerState,
     TrackerStream,
     TuningResult,
+    estimate_measurement_noise,
     kalman_filter,
     kalman_init,
     kalman_predict,
@@ -81,6 +83,7 @@ from .tracking import (
     tracker_sample,
     tracker_update,
     tune_tracker,
+    with_measurement_noise,
 )
 from .tracking import tuning
 from .vision import (
@@ -177,6 +180,9 @@ __all__ = [
     "render_rgbd",
     "synthetic_rgbd_sequence",
     "KalmanConfig",
+    "MeasurementNoise",
+    "estimate_measurement_noise",
+    "with_measurement_noise",
     "KalmanInfo",
     "KalmanState",
     "kalman_filter",

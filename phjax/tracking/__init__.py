@@ -10,6 +10,7 @@
 * :mod:`~phjax.tracking.baselines`: the methods phjax is compared with (One Euro, hold, Kalman
   extrapolation, splines).
 * :mod:`~phjax.tracking.tuning`: gradient tuning of the tracker on recordings.
+* :mod:`~phjax.tracking.noise`: measurement noise of a recording, estimated from the recording.
 """
 
 from .baselines import (
@@ -49,6 +50,7 @@ from .kalman import (
     rts_smooth,
 )
 from .models import ConstantAcceleration, ConstantVelocity
+from .noise import MeasurementNoise, estimate_measurement_noise, with_measurement_noise
 from .stream import TrackerStream
 from .tracker import (
     TrackerConfig,
@@ -63,6 +65,9 @@ from .tracker import (
 from .tuning import TuningResult, load_config, save_config, tracker_loss, tune_tracker
 
 __all__ = [
+    "MeasurementNoise",
+    "estimate_measurement_noise",
+    "with_measurement_noise",
     "ConstantAcceleration",
     "ConstantVelocity",
     "IMMConfig",
