@@ -228,10 +228,19 @@ def test_synthetic_sequence_end_to_end_accuracy(detectors):
     render = np.arange(times[0], times[-1], 1 / 120)
     gp, gq = (np.asarray(x) for x in interpolate_poses(gt.times[:60], gt.positions[:60],
                                                        gt.quaternions[:60], render))
-    # measured: single-model filter 0.41 mm / 0.281 deg; the default IMM filter 1.77 mm /
-    # 0.537 deg (2 s of motion: its mode probabilities are still settling); bounds 1.5x
+    # The front-end's noise (0.25 mm / 0.2 deg per frame) is far below the default sensor's
+    # (5 mm / 1 deg) that the filters assume. With the noise estimated from the front-end's
+    # own poses (phjax.tracking.estimate_measurement_noise) the IMM follows the motion instead
+    # of smoothing it away. Measured: single-model filter 0.41 mm / 0.281 deg; default IMM
+    # 1.77 mm / 0.537 deg; IMM with the estimated noise (0.10 mm / 0.105 deg)
+    # 0.32 mm / 0.263 deg, the best of the three; bounds 1.5x.
+    noise = pj.estimate_measurement_noise(times, pos, quat)
+    print("estimated front-end noise: {:.3f} mm, {:.3f} deg".format(
+        1e3 * float(noise.pos_meas_noise), float(np.degrees(noise.rot_meas_noise))))
+    tuned = pj.with_measurement_noise(pj.TrackerConfig(), noise)
     for config, bound in [(pj.TrackerConfig(imm=None), (0.00041, 0.281)),
-                          (pj.TrackerConfig(), (0.00177, 0.537))]:
+                          (pj.TrackerConfig(), (0.00177, 0.537)),
+                          (tuned, (0.00032, 0.263))]:
         P, Q = (np.asarray(x) for x in pj.track(times, pos, quat, render, config=config,
                                                  dtype=np.float64))
         stream = (position_rmse(P, gp).value, rotation_rmse(Q, gq).value)
