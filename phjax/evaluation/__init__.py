@@ -1,13 +1,14 @@
 """Evaluation: metrics against ground truth, and the comparison of phjax with its baselines.
 
 * :mod:`~phjax.evaluation.metrics`: RMSE (position, rotation), RMS jerk, curvature / torsion,
-  velocity jumps, latency.
+  velocity jumps, latency (velocity cross-correlation) and lag (shift minimising the RMSE).
 * :mod:`~phjax.evaluation.report`: simulate a sensor on a ground-truth recording, run phjax and
   every baseline, score them, print the table and draw the figure (the ``phjax demo`` /
   ``phjax evaluate`` job).
 """
 
 from .metrics import (
+    Lag,
     Latency,
     Metric,
     evaluate,
@@ -20,6 +21,7 @@ from .metrics import (
     rms_jerk_position,
     rms_jerk_rotation,
     rotation_rmse_deg,
+    shift_lag,
 )
 from .report import (
     TUNED,
@@ -33,6 +35,7 @@ from .report import (
 
 __all__ = [
     "EvaluationResult",
+    "Lag",
     "Latency",
     "Method",
     "Metric",
@@ -51,4 +54,5 @@ __all__ = [
     "rms_jerk_position",
     "rms_jerk_rotation",
     "rotation_rmse_deg",
+    "shift_lag",
 ]
