@@ -34,12 +34,12 @@ from .report import (
 )
 
 __all__ = [
+    "TUNED",
     "EvaluationResult",
     "Lag",
     "Latency",
     "Method",
     "Metric",
-    "TUNED",
     "default_methods",
     "evaluate",
     "evaluate_recording",

@@ -37,20 +37,20 @@ from .._np_quat import np_qnormalize as _np_qnormalize
 from .._np_quat import np_rotvec as _np_rotvec
 
 __all__ = [
-    "Metric",
+    "Lag",
     "Latency",
-    "position_rmse",
-    "rotation_rmse_deg",
-    "rms_jerk_position",
-    "rms_jerk_rotation",
+    "Metric",
+    "evaluate",
+    "latency",
+    "max_angular_velocity_jump",
+    "max_velocity_jump",
     "mean_abs_curvature",
     "mean_abs_torsion",
-    "max_velocity_jump",
-    "max_angular_velocity_jump",
-    "latency",
-    "Lag",
+    "position_rmse",
+    "rms_jerk_position",
+    "rms_jerk_rotation",
+    "rotation_rmse_deg",
     "shift_lag",
-    "evaluate",
 ]
 
 
@@ -507,12 +507,12 @@ def latency(
     if t.shape[0] < 4:
         return nan
     h = float(np.median(np.diff(t)))
-    span = 1 if window is None else max(1, int(round(window / h)))
+    span = 1 if window is None else max(1, round(window / h))
     if span >= t.shape[0]:
         return nan
     m, ve = _span_velocity(t, e, span, kind)
     _, vg = _span_velocity(t, g, span, kind)
-    kmax = max(1, int(round(max_lag / h)))
+    kmax = max(1, round(max_lag / h))
     lags = np.arange(-kmax, kmax + 1) * h
     corr = np.full(lags.shape, np.nan)
     counts = np.zeros(lags.shape, dtype=int)
@@ -685,10 +685,10 @@ def evaluate(
     else:
         put("velocity_jump", max_velocity_jump(times, est_pos, boundary_times))
         put("angular_velocity_jump", max_angular_velocity_jump(times, est_quat, boundary_times))
-    lat = dict(max_lag=max_lag, window=latency_window)
+    lat = {"max_lag": max_lag, "window": latency_window}
     put("latency_position", latency(times, est_pos, gt_pos, kind="position", **lat))
     put("latency_rotation", latency(times, est_quat, gt_quat, kind="rotation", **lat))
-    rng = dict(min_lag=lag_range[0], max_lag=lag_range[1])
+    rng = {"min_lag": lag_range[0], "max_lag": lag_range[1]}
     put("lag_position", shift_lag(times, est_pos, gt_pos, kind="position", **rng))
     put("lag_rotation", shift_lag(times, est_quat, gt_quat, kind="rotation", **rng))
     return out
