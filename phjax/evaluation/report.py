@@ -359,18 +359,27 @@ def plot_evaluation(
     for ax, (rk, jk, scale, unit, junit) in zip(
             axes[0], (("position_rmse", "jerk_position", 1e3, "mm", "m/s^3"),
                       ("rotation_rmse_deg", "jerk_rotation", 1.0, "deg", "rad/s^3"))):
-        drawn = False
-        for n in order:
-            x, y = result.metrics[n].get(jk, np.nan), scale * result.metrics[n].get(rk, np.nan)
-            if not (np.isfinite(x) and np.isfinite(y) and x > 0):
-                continue
-            drawn = True
+        pts = {n: (result.metrics[n].get(jk, np.nan), scale * result.metrics[n].get(rk, np.nan))
+               for n in order}
+        pts = {n: v for n, v in pts.items() if np.isfinite(v[0]) and np.isfinite(v[1]) and v[0] > 0}
+        drawn = bool(pts)
+        # the RMSE axis spans the causal methods; an offline method below it sits on the edge
+        ys = [v[1] for n, v in pts.items() if causal[n]] or [v[1] for v in pts.values()] or [0.0]
+        pad = 0.08 * (max(ys) - min(ys)) + 1e-9
+        floor = min(ys) - pad
+        for n, (x, y) in pts.items():
             mine = n == ref
-            ax.scatter([x], [y], s=160 if mine else 60, marker="*" if mine else "o",
+            below = y < floor
+            ax.scatter([x], [max(y, floor + 0.15 * pad)], s=180 if mine else 60,
+                       marker="*" if mine else ("v" if below else "o"),
                        facecolors=colours[n] if causal[n] else "none", edgecolors=colours[n],
-                       zorder=5 if mine else 3, label=label(n))
-            ax.annotate(n, (x, y), textcoords="offset points", xytext=(6, 4), fontsize=7,
-                        color=colours[n], fontweight="bold" if mine else "normal")
+                       zorder=5 if mine else 3, label=label(n), clip_on=False)
+            if mine or below:
+                text = f"{n}" + (f": {y:.3g} {unit} (below the axis)" if below else "")
+                ax.annotate(text, (x, max(y, floor + 0.15 * pad)), textcoords="offset points",
+                            xytext=(6, 5), fontsize=7, color=colours[n],
+                            fontweight="bold" if mine else "normal")
+        ax.set_ylim(floor, max(ys) + pad)
         ax.set_xscale("log")
         ax.set_xlabel(f"RMS jerk [{junit}] (log)")
         ax.set_ylabel(f"RMSE [{unit}]")
