@@ -57,8 +57,8 @@ def test_table_marks_the_best_causal_value_per_column():
 def test_ratio_rows_compare_phjax_with_the_strongest_baseline_of_each_column():
     text = format_table(METRICS, CAUSAL)
     lines = {ln.split("|")[1].strip(): [c.strip() for c in ln.strip("|").split("|")[1:]]
-             for ln in text.splitlines() if ln.startswith("| strongest") or ln.startswith("| its")
-             or ln.startswith("| phjax (causal) / it")}
+             for ln in text.splitlines()
+             if ln.startswith(("| strongest", "| its", "| phjax (causal) / it"))}
     strongest = lines["strongest baseline"]
     # raw hold and phjax streams are not baselines; offline methods never count
     assert strongest == ["one-euro + extrapolation", "kalman-cv extrapolation",
