@@ -292,6 +292,11 @@ def rms_jerk_position(times: Float[ArrayLike, " n"], positions: Float[ArrayLike,
     Each window of four consecutive finite samples gives ``6 x[t_i, ..., t_{i+3}]`` (six times
     the third divided difference, i.e. the jerk of the interpolating cubic): exact for cubics on
     any spacing, second-order accurate on a uniform grid. ``count`` = windows used.
+
+    The value belongs to the stream *as sampled*: compare methods at the same sample rate. A
+    stream that is only C1 (acceleration steps, e.g. at camera frames) has no finite continuous
+    RMS jerk, so its value grows with the sample rate; a jerk that lasts only a few sample
+    periods is smoothed by the four-sample stencil.
     """
     t, x = _as64(times), _as64(positions)
     _check_times(t, x.shape[0])
@@ -417,8 +422,10 @@ def max_velocity_jump(
     with ``t <= b`` using it and the two samples before; ``v(b+)`` likewise at the first sample
     with ``t >= b`` and the two after. Exact for piecewise-quadratic paths with the kink at
     ``b``; for a smooth path the value is ``O(a dt)`` when ``b`` falls between samples (the
-    straddling interval is skipped). Boundaries without three finite samples on each side are
-    ignored; ``count`` = boundaries used.
+    straddling interval is skipped), plus the stencils' truncation error ``O(j dt^2)`` (``j``:
+    the jerk near ``b``): a C1 stream whose acceleration changes within a few samples shows a
+    "jump" that shrinks with the sample spacing (see ``docs/results.md``). Boundaries without
+    three finite samples on each side are ignored; ``count`` = boundaries used.
     """
     t, x = _as64(times), _as64(positions)
     _check_times(t, x.shape[0])

@@ -392,3 +392,33 @@ def test_shift_lag_edge_cases_and_evaluate_keys():
     out = evaluate(tt, p, q, p, q)
     assert abs(out["lag_position"]) < 1e-4 and abs(out["lag_rotation"]) < 1e-4
     assert out["lag_position_rmse"] < 1e-9
+
+
+def test_velocity_jump_of_a_c1_stream_is_truncation_error_that_vanishes_with_spacing():
+    """A C1 path with acceleration steps at the knots (cubic Hermite pieces, like a stream
+    re-planned at every camera frame) has no velocity jump; sampled at a quarter of the knot
+    period the one-sided stencils still report one of order ``jerk * h^2``, which shrinks with
+    the spacing (the artefact behind the large 120 Hz values of a C1 stream), and the RMS jerk
+    grows with the sample rate (the acceleration steps), while inside the pieces it is exact."""
+    from scipy.interpolate import CubicHermiteSpline
+
+    rng = np.random.default_rng(0)
+    period = 1 / 30
+    knots = np.arange(0, 2 + 1e-9, period)
+    spline = CubicHermiteSpline(knots, rng.normal(0, 2e-3, (knots.size, 3)),
+                                rng.normal(0, 0.1, (knots.size, 3)))
+    jerk_pieces = np.linalg.norm(spline.c[0] * 6, axis=-1)  # constant jerk per piece
+    boundaries = knots[5:-5] + 1e-4  # between samples, as camera frames are
+    jumps, rms = [], []
+    for n in (4, 64, 1024):
+        t = np.arange(0, 2, period / n)
+        x = spline(t)
+        jumps.append(max_velocity_jump(t, x, boundaries).value)
+        rms.append(rms_jerk_position(t, x).value)
+        h = period / n
+        assert jumps[-1] <= 2 * jerk_pieces.max() * h**2 + 2 * np.abs(spline(t, 2)).max() * h
+    assert jumps[0] > 30 * jumps[2]
+    assert rms[0] < rms[1] < rms[2]
+    # away from the knots the metric is exact: one piece sampled alone
+    t = np.linspace(knots[10] + 1e-3, knots[11] - 1e-3, 50)
+    assert rms_jerk_position(t, spline(t)).value == pytest.approx(jerk_pieces[10], rel=1e-6)
