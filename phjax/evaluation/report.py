@@ -200,8 +200,7 @@ _LAGS = ("lag_position", "lag_rotation")
 LEGEND = ("Lower is better (lag: closer to 0); **bold** = best causal method per column; offline "
           "methods use future frames and are not ranked. RMSE against ground truth; jerk = RMS "
           "third derivative of the rendered stream; lag = time shift minimising the RMSE against "
-          "the shifted ground truth (positive = behind). Ratio = phjax (causal) / the strongest "
-          "causal baseline of that column (< 1: phjax better); lag: difference in ms.")
+          "the shifted ground truth (positive = behind).")
 
 
 def _num(v: float) -> str:
@@ -292,7 +291,9 @@ def format_table(
                 row_r.append("-" if not np.isfinite(vr - vb) else f"{vr - vb:+.1f} ms")
             else:
                 row_r.append("-" if not (np.isfinite(vr) and vb > 0) else f"{vr / vb:.3f}")
-        lines += ["", "| " + " | ".join([""] + [c[1] for c in _COLUMNS]) + " |",
+        lines += ["", f"{reference} against the strongest causal baseline of each column "
+                  "(ratio < 1: phjax better; lag: difference in ms):",
+                  "", "| " + " | ".join([""] + [c[1] for c in _COLUMNS]) + " |",
                   "|" + "---|" * (len(_COLUMNS) + 1)]
         lines += ["| " + " | ".join(r) + " |" for r in (row_b, row_v, row_r)]
     return "\n".join(lines)
