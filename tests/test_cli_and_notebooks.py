@@ -12,6 +12,7 @@ import pytest
 from conftest import REPO, shared_path
 from phjax import io
 from phjax.cli import main
+from phjax.evaluation.report import LEGEND
 
 
 def test_demo_curve_on_tum(capsys):
@@ -26,9 +27,14 @@ def test_demo_prints_table_and_writes_plot(tmp_path, capsys):
     png = tmp_path / "eval.png"
     assert main(["demo", "--duration", "6", "--plot", str(png), "--no-progress"]) == 0
     out = capsys.readouterr().out
-    for name in ["phjax (causal)", "phjax (offline)", "kalman-cv extrapolation", "one-euro + hold",
-                 "raw hold", "cubic spline (scipy)", "linear + slerp"]:
-        assert name in out
+    for name in ["phjax (causal)", "phjax (offline)", "kalman-cv extrapolation",
+                 "alpha-beta extrapolation", "one-euro + hold", "one-euro + extrapolation",
+                 "snapshot interpolation", "imm extrapolation", "raw hold", "cubic spline (scipy)"]:
+        assert f"| {name} |" in out
+    assert LEGEND in out  # the line saying what the numbers mean
+    assert "| phjax (causal) / it |" in out and "| strongest baseline |" in out
+    rows = [ln for ln in out.splitlines() if ln.startswith("| ") and "causal" not in ln[:8]]
+    assert sum("**" in ln for ln in rows) >= 3  # best causal values are marked
     assert png.exists() and png.stat().st_size > 10_000
 
 

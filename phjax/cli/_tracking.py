@@ -34,8 +34,13 @@ def _sensor(args):
 
 
 def _run_evaluation(times, positions, quaternions, args, title: str) -> int:
+    from ..evaluation.report import (
+        default_methods,
+        evaluate_recording,
+        format_table,
+        plot_evaluation,
+    )
     from ._tune import config_from_args
-    from ..evaluation.report import default_methods, evaluate_recording, format_table, plot_evaluation
 
     config = config_from_args(args)
     if args.plot:
@@ -64,9 +69,9 @@ def _demo_rgbd(args) -> int:
     import tempfile
     from pathlib import Path
 
+    from ..datasets import shared_data_dir
     from ..vision import face_detection
     from ._rgbd import cmd_track_rgbd
-    from ..datasets import shared_data_dir
 
     try:
         face_detection.model_path(face_detection.YUNET_ONNX)
@@ -165,9 +170,12 @@ def add_commands(sub) -> None:
         "demo", help="the main job: evaluate phjax and the baselines on the bundled synthetic head motion",
         description="Simulate a camera-rate sensor from a ground-truth head motion (by default the "
         "package's synthetic seated-VR head motion; or a trajectory file you name), run the causal "
-        "phjax stream, the offline reconstruction and every baseline (tuned Kalman CV "
-        "extrapolation, One Euro, raw hold, scipy cubic spline, linear/slerp), print the metrics "
-        "table and write a PNG plot (--plot, default phjax_evaluation.png; with --rgbd the "
+        "phjax stream, the offline reconstruction and every tuned causal baseline (Kalman CV "
+        "extrapolation, alpha-beta extrapolation, One Euro + hold, One Euro + extrapolation, "
+        "snapshot interpolation, IMM extrapolation; references: raw hold, scipy cubic spline), "
+        "print the table (RMSE, RMS jerk, lag; best causal value per column in bold; phjax "
+        "against the strongest baseline per column) and write a PNG plot (RMSE vs jerk, lag, a "
+        "zoom on the fastest motion; --plot, default phjax_evaluation.png; with --rgbd the "
         "render-rate stream phjax_evaluation.tum instead).")
     p.add_argument("input", nargs="?", help="optional ground-truth trajectory file (TUM, EuRoC, CSV, ...)")
     p.add_argument("--format", default="auto", choices=INPUT_FORMATS,
@@ -184,7 +192,8 @@ def add_commands(sub) -> None:
 
     p = sub.add_parser("evaluate", help="metrics of phjax and every baseline on a ground-truth file",
                        description="Like 'demo' on a ground-truth trajectory file: print the "
-                       "metrics table and write the PNG plot (--plot, default "
+                       "metrics table of phjax and every tuned baseline (best causal value per "
+                       "column in bold) and write the PNG plot (--plot, default "
                        "phjax_evaluation.png).")
     p.add_argument("ground_truth", help="ground-truth trajectory (TUM .txt, EuRoC/TUM-VI .csv, phjax .csv)")
     p.add_argument("--format", default="auto", choices=INPUT_FORMATS,

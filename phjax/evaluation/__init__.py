@@ -1,13 +1,14 @@
 """Evaluation: metrics against ground truth, and the comparison of phjax with its baselines.
 
 * :mod:`~phjax.evaluation.metrics`: RMSE (position, rotation), RMS jerk, curvature / torsion,
-  velocity jumps, latency.
+  velocity jumps, latency (velocity cross-correlation) and lag (shift minimising the RMSE).
 * :mod:`~phjax.evaluation.report`: simulate a sensor on a ground-truth recording, run phjax and
   every baseline, score them, print the table and draw the figure (the ``phjax demo`` /
   ``phjax evaluate`` job).
 """
 
 from .metrics import (
+    Lag,
     Latency,
     Metric,
     evaluate,
@@ -20,6 +21,7 @@ from .metrics import (
     rms_jerk_position,
     rms_jerk_rotation,
     rotation_rmse_deg,
+    shift_lag,
 )
 from .report import (
     TUNED,
@@ -32,11 +34,12 @@ from .report import (
 )
 
 __all__ = [
+    "TUNED",
     "EvaluationResult",
+    "Lag",
     "Latency",
     "Method",
     "Metric",
-    "TUNED",
     "default_methods",
     "evaluate",
     "evaluate_recording",
@@ -51,4 +54,5 @@ __all__ = [
     "rms_jerk_position",
     "rms_jerk_rotation",
     "rotation_rmse_deg",
+    "shift_lag",
 ]

@@ -30,24 +30,27 @@ from typing import NamedTuple
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
+from .._np_quat import np_from_rotvec as _np_from_rotvec
 from .._np_quat import np_qconj as _np_qconj
 from .._np_quat import np_qmul as _np_qmul
 from .._np_quat import np_qnormalize as _np_qnormalize
 from .._np_quat import np_rotvec as _np_rotvec
 
 __all__ = [
-    "Metric",
+    "Lag",
     "Latency",
-    "position_rmse",
-    "rotation_rmse_deg",
-    "rms_jerk_position",
-    "rms_jerk_rotation",
+    "Metric",
+    "evaluate",
+    "latency",
+    "max_angular_velocity_jump",
+    "max_velocity_jump",
     "mean_abs_curvature",
     "mean_abs_torsion",
-    "max_velocity_jump",
-    "max_angular_velocity_jump",
-    "latency",
-    "evaluate",
+    "position_rmse",
+    "rms_jerk_position",
+    "rms_jerk_rotation",
+    "rotation_rmse_deg",
+    "shift_lag",
 ]
 
 
@@ -64,6 +67,15 @@ class Latency(NamedTuple):
 
     value: float
     correlation: float
+    count: int
+
+
+class Lag(NamedTuple):
+    """Time shift (s, positive = estimate behind) minimising the RMSE against the shifted ground
+    truth, the RMSE at the best grid shift (m or deg), and the number of samples used."""
+
+    value: float
+    rmse: float
     count: int
 
 
@@ -280,6 +292,11 @@ def rms_jerk_position(times: Float[ArrayLike, " n"], positions: Float[ArrayLike,
     Each window of four consecutive finite samples gives ``6 x[t_i, ..., t_{i+3}]`` (six times
     the third divided difference, i.e. the jerk of the interpolating cubic): exact for cubics on
     any spacing, second-order accurate on a uniform grid. ``count`` = windows used.
+
+    The value belongs to the stream *as sampled*: compare methods at the same sample rate. A
+    stream that is only C1 (acceleration steps, e.g. at camera frames) has no finite continuous
+    RMS jerk, so its value grows with the sample rate; a jerk that lasts only a few sample
+    periods is smoothed by the four-sample stencil.
     """
     t, x = _as64(times), _as64(positions)
     _check_times(t, x.shape[0])
@@ -405,8 +422,10 @@ def max_velocity_jump(
     with ``t <= b`` using it and the two samples before; ``v(b+)`` likewise at the first sample
     with ``t >= b`` and the two after. Exact for piecewise-quadratic paths with the kink at
     ``b``; for a smooth path the value is ``O(a dt)`` when ``b`` falls between samples (the
-    straddling interval is skipped). Boundaries without three finite samples on each side are
-    ignored; ``count`` = boundaries used.
+    straddling interval is skipped), plus the stencils' truncation error ``O(j dt^2)`` (``j``:
+    the jerk near ``b``): a C1 stream whose acceleration changes within a few samples shows a
+    "jump" that shrinks with the sample spacing (see ``docs/results.md``). Boundaries without
+    three finite samples on each side are ignored; ``count`` = boundaries used.
     """
     t, x = _as64(times), _as64(positions)
     _check_times(t, x.shape[0])
@@ -495,12 +514,12 @@ def latency(
     if t.shape[0] < 4:
         return nan
     h = float(np.median(np.diff(t)))
-    span = 1 if window is None else max(1, int(round(window / h)))
+    span = 1 if window is None else max(1, round(window / h))
     if span >= t.shape[0]:
         return nan
     m, ve = _span_velocity(t, e, span, kind)
     _, vg = _span_velocity(t, g, span, kind)
-    kmax = max(1, int(round(max_lag / h)))
+    kmax = max(1, round(max_lag / h))
     lags = np.arange(-kmax, kmax + 1) * h
     corr = np.full(lags.shape, np.nan)
     counts = np.zeros(lags.shape, dtype=int)
@@ -531,6 +550,85 @@ def latency(
     return Latency(float(lag), float(corr[k]), int(counts[k]))
 
 
+def _shifted(t: np.ndarray, x: np.ndarray, s: np.ndarray, kind: str) -> np.ndarray:
+    """``x`` (sampled at ``t``) interpolated at the times ``s``: linear for positions, slerp for
+    quaternions, between consecutive samples; NaN outside ``[t_0, t_-1]`` or when a bracketing
+    sample is NaN."""
+    n = t.shape[0]
+    i = np.clip(np.searchsorted(t, s, side="right") - 1, 0, n - 2)
+    u = ((s - t[i]) / (t[i + 1] - t[i]))[..., None]
+    inside = (s >= t[0]) & (s <= t[-1])
+    a, b = x[i], x[i + 1]
+    if kind == "position":
+        y = a + u * (b - a)
+    else:
+        a, b = _np_qnormalize(a), _np_qnormalize(b)
+        y = _np_qmul(_np_from_rotvec(u * _np_rotvec(_np_qmul(b, _np_qconj(a)))), a)
+    return np.where(inside[..., None], y, np.nan)
+
+
+@_over_recordings(times="times", est="rows", gt="rows")
+def shift_lag(
+    times: Float[ArrayLike, " n"],
+    est: Float[ArrayLike, "n d"],
+    gt: Float[ArrayLike, "n d"],
+    *,
+    min_lag: float = -0.1,
+    max_lag: float = 0.3,
+    step: float = 0.002,
+    kind: str | None = None,
+) -> Lag:
+    """Lag of ``est`` behind ``gt``: the shift ``d`` minimising ``RMSE(est(tau), gt(tau - d))``.
+
+    The ground truth (given at the same times as the estimate) is interpolated at ``tau - d``
+    (linear for positions, ``d == 3``; slerp for wxyz quaternions, ``d == 4``; ``kind``
+    overrides) for ``d`` on a grid of ``step`` from ``min_lag`` to ``max_lag`` (s). The error
+    is the Euclidean distance (m) or the geodesic angle (deg). Every candidate is scored on the
+    same samples: those finite in ``est`` whose shifted ground truth is finite for every ``d``.
+    The best grid value is refined by a parabola through its neighbours; at an end of the grid
+    the end is returned (the true lag may lie beyond it).
+
+    Unlike :func:`latency` (velocity cross-correlation) this is the lag a viewer sees: how far
+    back in time the ground truth best matches the stream, including any constant offset.
+
+    Returns:
+        ``Lag(lag, rmse_at_lag, count)``; positive lag = estimate behind. NaN with count 0 when
+        fewer than 3 samples can be scored.
+    """
+    t, e, g = _as64(times), _as64(est), _as64(gt)
+    if e.shape != g.shape or e.ndim != 2:
+        raise ValueError(f"est and gt must have the same (n, d) shape, got {e.shape}, {g.shape}")
+    _check_times(t, e.shape[0])
+    if kind is None:
+        kind = {3: "position", 4: "rotation"}.get(e.shape[1])
+    if kind not in ("position", "rotation"):
+        raise ValueError("kind must be 'position' or 'rotation' (or d must be 3 or 4)")
+    if not (step > 0 and min_lag < max_lag):
+        raise ValueError("need step > 0 and min_lag < max_lag")
+    nan = Lag(float("nan"), float("nan"), 0)
+    if t.shape[0] < 4:
+        return nan
+    lags = np.arange(min_lag, max_lag + 0.5 * step, step)
+    shifted = _shifted(t, g, t[None, :] - lags[:, None], kind)  # (L, n, d)
+    ok = _finite_rows(e) & np.all(_finite_rows(shifted), axis=0)
+    count = int(ok.sum())
+    if count < 3:
+        return nan
+    if kind == "position":
+        err = np.linalg.norm(shifted[:, ok] - e[ok], axis=-1)
+    else:
+        err = np.degrees(_geodesic_angle(shifted[:, ok], e[ok][None]))
+    rmse = np.sqrt(np.mean(err**2, axis=-1))
+    k = int(np.argmin(rmse))
+    lag = float(lags[k])
+    if 0 < k < len(lags) - 1:
+        c0, c1, c2 = rmse[k - 1], rmse[k], rmse[k + 1]
+        den = c0 - 2 * c1 + c2
+        if den > 0:
+            lag += 0.5 * (c0 - c2) / den * step
+    return Lag(lag, float(rmse[k]), count)
+
+
 # ----------------------------------------------------------------------------------------------
 # everything at once
 # ----------------------------------------------------------------------------------------------
@@ -548,6 +646,7 @@ def evaluate(
     *,
     max_lag: float = 0.5,
     latency_window: float | None = 0.1,
+    lag_range: tuple[float, float] = (-0.1, 0.3),
 ) -> dict[str, float]:
     """All metrics of an estimated pose stream against ground truth at the same render times.
 
@@ -562,7 +661,9 @@ def evaluate(
       (NaN when not given);
     * ``latency_position``, ``latency_rotation`` (s) with ``..._corr`` (peak correlation), from
       :func:`latency` with ``max_lag`` and ``window=latency_window`` (0.1 s velocity box filter
-      by default, which makes the estimate robust to measurement noise and hold staircases).
+      by default, which makes the estimate robust to measurement noise and hold staircases);
+    * ``lag_position``, ``lag_rotation`` (s) with ``..._rmse`` (m / deg): the shift minimising
+      the RMSE against the shifted ground truth (:func:`shift_lag`, shifts in ``lag_range``).
 
     Metrics without usable samples (e.g. position metrics of orientation-only data) are NaN
     with count 0.
@@ -573,6 +674,8 @@ def evaluate(
         out[name] = res.value
         if isinstance(res, Latency):
             out[name + "_corr"] = res.correlation
+        if isinstance(res, Lag):
+            out[name + "_rmse"] = res.rmse
         out[name + "_n"] = res.count
 
     put("position_rmse", position_rmse(est_pos, gt_pos))
@@ -589,7 +692,10 @@ def evaluate(
     else:
         put("velocity_jump", max_velocity_jump(times, est_pos, boundary_times))
         put("angular_velocity_jump", max_angular_velocity_jump(times, est_quat, boundary_times))
-    lat = dict(max_lag=max_lag, window=latency_window)
+    lat = {"max_lag": max_lag, "window": latency_window}
     put("latency_position", latency(times, est_pos, gt_pos, kind="position", **lat))
     put("latency_rotation", latency(times, est_quat, gt_quat, kind="rotation", **lat))
+    rng = {"min_lag": lag_range[0], "max_lag": lag_range[1]}
+    put("lag_position", shift_lag(times, est_pos, gt_pos, kind="position", **rng))
+    put("lag_rotation", shift_lag(times, est_quat, gt_quat, kind="rotation", **rng))
     return out

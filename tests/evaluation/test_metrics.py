@@ -322,3 +322,103 @@ def test_metrics_take_nan_padded_batches():
     bad[0, 0, 3] = np.nan
     with pytest.raises(ValueError, match="padding"):
         metrics.rms_jerk_position(bad, p)
+
+
+# ------------------------------------------------------------------------------ shift lag (RMSE)
+
+
+@pytest.mark.parametrize("delay", [0.0237, -0.0113, 0.0])
+def test_shift_lag_recovers_a_known_delay(delay):
+    """A stream that is the ground truth ``delay`` seconds late (plus white noise) has that lag,
+    positions and rotations; grid 2 ms, render 120 Hz, so the parabola must interpolate."""
+    h = 1 / 120
+    t = np.arange(0, 20, h)
+    rng = np.random.default_rng(3)
+    f, ph = rng.uniform(0.1, 1.5, (2, 3, 3))
+
+    def sig(s):
+        return np.sin(2 * np.pi * f[None] * s[:, None, None] + ph[None]).sum(-1)  # (n, 3)
+
+    gt, est = 0.1 * sig(t), 0.1 * sig(t - delay)
+    est = est + rng.normal(0, 1e-3, est.shape)
+    est[700:720] = np.nan
+    res = metrics.shift_lag(t, est, gt)
+    assert abs(res.value - delay) < 1e-3
+    assert res.rmse == pytest.approx(1e-3 * np.sqrt(3), rel=0.1)  # the noise is what remains
+    assert res.count < t.size - 20
+
+    rq = _wxyz(Rotation.from_rotvec(0.5 * sig(t)))
+    rq_est = _wxyz(Rotation.from_rotvec(0.5 * sig(t - delay)))
+    res = metrics.shift_lag(t, -rq_est, rq)  # sign-invariant
+    assert abs(res.value - delay) < 1e-3
+    unshifted = rotation_rmse_deg(rq_est, rq).value
+    assert res.rmse <= unshifted + 1e-12
+    if delay != 0:
+        assert res.rmse < 0.2 * unshifted  # what is left: <= 1 ms of grid offset, slerp error
+
+
+def test_shift_lag_of_a_hold_and_against_brute_force():
+    """A zero-order hold lags by the mean age of the held sample (here 30 Hz held on a 120 Hz
+    grid: ages 0, 1, 2, 3 render periods, mean 1.5 h; the RMSE of a sawtooth error is least at
+    its mean); the value equals a brute-force minimum over exactly shifted ground truth on a
+    fine grid (independent of the interpolation)."""
+    h = 1 / 120
+    t = np.arange(0, 20, h)
+
+    def g(s):
+        return np.stack([np.sin(1.3 * s), 0.5 * np.cos(0.7 * s), 0 * s], -1)
+
+    period = 1 / 30
+    held = g(np.floor(t / period + 1e-9) * period)
+    res = metrics.shift_lag(t, held, g(t), step=0.001)
+    fine = np.arange(-0.05, 0.1, 1e-4)
+    sel = (t > 0.2) & (t < 19.7)
+    brute = [np.sqrt(np.mean(np.sum((held[sel] - g(t[sel] - d)) ** 2, -1))) for d in fine]
+    assert res.value == pytest.approx(fine[int(np.argmin(brute))], abs=5e-4)
+    assert abs(res.value - 1.5 * h) < 1e-3
+
+
+def test_shift_lag_edge_cases_and_evaluate_keys():
+    t = np.linspace(0, 1, 5)
+    nan = np.full((5, 3), np.nan)
+    assert metrics.shift_lag(t, nan, nan).count == 0
+    with pytest.raises(ValueError, match="same"):
+        metrics.shift_lag(t, np.zeros((5, 3)), np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="step"):
+        metrics.shift_lag(t, np.zeros((5, 3)), np.zeros((5, 3)), step=0.0)
+    tt = np.linspace(0, 2, 241)
+    p = _helix(tt)
+    q = _wxyz(Rotation.from_rotvec(np.outer(np.sin(tt), [0, 1.0, 0])))
+    out = evaluate(tt, p, q, p, q)
+    assert abs(out["lag_position"]) < 1e-4 and abs(out["lag_rotation"]) < 1e-4
+    assert out["lag_position_rmse"] < 1e-9
+
+
+def test_velocity_jump_of_a_c1_stream_is_truncation_error_that_vanishes_with_spacing():
+    """A C1 path with acceleration steps at the knots (cubic Hermite pieces, like a stream
+    re-planned at every camera frame) has no velocity jump; sampled at a quarter of the knot
+    period the one-sided stencils still report one of order ``jerk * h^2``, which shrinks with
+    the spacing (the artefact behind the large 120 Hz values of a C1 stream), and the RMS jerk
+    grows with the sample rate (the acceleration steps), while inside the pieces it is exact."""
+    from scipy.interpolate import CubicHermiteSpline
+
+    rng = np.random.default_rng(0)
+    period = 1 / 30
+    knots = np.arange(0, 2 + 1e-9, period)
+    spline = CubicHermiteSpline(knots, rng.normal(0, 2e-3, (knots.size, 3)),
+                                rng.normal(0, 0.1, (knots.size, 3)))
+    jerk_pieces = np.linalg.norm(spline.c[0] * 6, axis=-1)  # constant jerk per piece
+    boundaries = knots[5:-5] + 1e-4  # between samples, as camera frames are
+    jumps, rms = [], []
+    for n in (4, 64, 1024):
+        t = np.arange(0, 2, period / n)
+        x = spline(t)
+        jumps.append(max_velocity_jump(t, x, boundaries).value)
+        rms.append(rms_jerk_position(t, x).value)
+        h = period / n
+        assert jumps[-1] <= 2 * jerk_pieces.max() * h**2 + 2 * np.abs(spline(t, 2)).max() * h
+    assert jumps[0] > 30 * jumps[2]
+    assert rms[0] < rms[1] < rms[2]
+    # away from the knots the metric is exact: one piece sampled alone
+    t = np.linspace(knots[10] + 1e-3, knots[11] - 1e-3, 50)
+    assert rms_jerk_position(t, spline(t)).value == pytest.approx(jerk_pieces[10], rel=1e-6)
