@@ -8,6 +8,7 @@ from collections import Counter
 import numpy as np
 
 from ._common import check_output, positive_float, positive_int, replaced_note
+from ._tune import add_noise_argument, with_noise_from_args
 
 
 def _relative_rotation_errors(est_q: np.ndarray, gt_q: np.ndarray) -> np.ndarray:
@@ -99,7 +100,10 @@ def cmd_track_rgbd(args) -> int:
                   f"{np.median(err):.2f} deg, max {err.max():.2f} deg over {sel.sum()} frames")
     # render-rate stream from the measured poses
     render = np.arange(times[ok][0], times[-1] + 1e-9, 1.0 / args.rate)
-    p_r, q_r = track(times, pos, quat, render)
+    config, noise = with_noise_from_args(args, None, times, pos, quat)
+    if noise:
+        print(noise)
+    p_r, q_r = track(times, pos, quat, render, config=config)
     p_r, q_r = np.asarray(p_r, np.float64), np.asarray(q_r, np.float64)
     good = np.isfinite(q_r).all(-1) & np.isfinite(p_r).all(-1)
     note = replaced_note(args.output)
@@ -141,4 +145,5 @@ def add_commands(sub) -> None:
     p.add_argument("--gt-reference", action="store_true",
                    help="use the ground-truth pose of the first frame as the reference")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_noise_argument(p)
     p.set_defaults(func=cmd_track_rgbd)

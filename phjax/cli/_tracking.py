@@ -16,7 +16,7 @@ from ._common import (
     replaced_note,
     unit_interval,
 )
-from ._tune import add_config_argument
+from ._tune import add_config_argument, add_noise_argument
 
 
 def _x64():
@@ -119,12 +119,16 @@ def cmd_smooth(args) -> int:
     _x64()
     from ..io import Trajectory, _writer_format, write_trajectory
     from ..tracking.tracker import reconstruct, track
-    from ._tune import config_from_args
+    from ._tune import config_from_args, with_noise_from_args
 
     _writer_format(args.output, args.out_format)  # before any work: a usable output name
     check_output(args.output)
     config = config_from_args(args)
     traj = read_input(args.input, args.format)
+    config, noise = with_noise_from_args(args, config, traj.times, traj.positions,
+                                         traj.quaternions)
+    if noise:
+        print(noise)
     render = np.arange(traj.times[0], traj.times[-1], 1.0 / args.rate)
 
     fn = reconstruct if args.offline else track
@@ -220,4 +224,5 @@ def add_commands(sub) -> None:
     p.add_argument("--out-format", default="auto", choices=OUTPUT_FORMATS,
                    help="output format (default auto: by the extension of OUTPUT)")
     add_config_argument(p)
+    add_noise_argument(p)
     p.set_defaults(func=cmd_smooth)

@@ -23,7 +23,8 @@ from ._common import (
     unit_interval,
 )
 
-__all__ = ["add_commands", "add_config_argument", "config_from_args", "cmd_tune"]
+__all__ = ["add_commands", "add_config_argument", "add_noise_argument", "config_from_args",
+           "cmd_tune", "with_noise_from_args"]
 
 
 def add_config_argument(parser) -> None:
@@ -45,6 +46,66 @@ def config_from_args(args):
     from ..tracking.tuning import load_config
 
     return load_config(path)
+
+
+def _noise_value(text: str):
+    """``'config'``, ``'auto'`` or ``(mm, deg)`` from a ``--measurement-noise`` value."""
+    import argparse
+
+    if text in ("config", "auto"):
+        return text
+    try:
+        mm, deg = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected 'config', 'auto' or 'MM,DEG', got {text!r}") from None
+    if not (np.isfinite(mm) and np.isfinite(deg) and mm > 0 and deg > 0):
+        raise argparse.ArgumentTypeError(f"stds must be positive and finite, got {text!r}")
+    return mm, deg
+
+
+def add_noise_argument(parser) -> None:
+    """Add ``--measurement-noise {config,auto,MM,DEG}`` to ``parser``."""
+    parser.add_argument(
+        "--measurement-noise", metavar="NOISE", default="config", type=_noise_value,
+        help="the filters' measurement noise: 'config' (default: from --config or the built-in "
+        "5 mm / 1 deg sensor), 'auto' (estimated from the input poses themselves, "
+        "phjax.tracking.estimate_measurement_noise: right for white noise such as a per-frame "
+        "head-pose front-end; a SLAM estimate with frame-to-frame correlated errors is often "
+        "better with the default) or 'MM,DEG' (position std in mm, orientation std in degrees)")
+
+
+def with_noise_from_args(args, config, times, positions, quaternions):
+    """``config`` (``None``: the defaults) with ``args.measurement_noise`` applied; returns the
+    config and a one-line description of the noise used.
+
+    Raises:
+        ValueError: 'auto' on too few valid samples (the CLI prints it).
+    """
+    from ..tracking.noise import estimate_measurement_noise, with_measurement_noise
+    from ..tracking.tracker import TrackerConfig
+
+    value = getattr(args, "measurement_noise", "config")
+    if value == "config":
+        return config, None
+    config = TrackerConfig() if config is None else config
+    if value == "auto":
+        noise = estimate_measurement_noise(times, positions, quaternions)
+        pos, rot = float(noise.pos_meas_noise), float(noise.rot_meas_noise)
+        pos = pos if np.isfinite(pos) and pos > 0 else None
+        rot = rot if np.isfinite(rot) and rot > 0 else None
+        if pos is None and rot is None:
+            raise ValueError("--measurement-noise auto: the input has too few consecutive "
+                             "valid poses to estimate the noise")
+        how = "estimated from the input"
+    else:
+        mm, deg = value
+        pos, rot, how = mm / 1e3, float(np.deg2rad(deg)), "given"
+    config = with_measurement_noise(config, pos=pos, rot=rot)
+    desc = (f"measurement noise ({how}): "
+            + (f"{pos * 1e3:.3g} mm" if pos is not None else "position default") + ", "
+            + (f"{np.degrees(rot):.3g} deg" if rot is not None else "orientation default"))
+    return config, desc
 
 
 def _ratio(a, b) -> str:

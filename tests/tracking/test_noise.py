@@ -163,3 +163,32 @@ def test_with_measurement_noise_sets_both_filters():
     cfg = with_measurement_noise(TrackerConfig(imm=None), nz, rot=0.01)
     assert cfg.imm is None and cfg.kalman.rot_meas_noise == 0.01
     assert cfg.horizon == TrackerConfig().horizon
+
+
+def test_cli_smooth_measurement_noise_auto(tmp_path):
+    """``phjax smooth --measurement-noise auto`` estimates the noise of the file it reads (a
+    simulated 2 mm / 0.5 deg sensor) and prints it; the stream differs from the default's."""
+    import subprocess
+    import sys
+
+    import phjax as pj
+    from phjax.io import Trajectory, read_trajectory, write_trajectory
+
+    t, p, q = pj.synthetic_head_motion(duration=6.0, seed=3)
+    sensor = pj.SensorModel(sigma_p=0.002, sigma_r=float(np.deg2rad(0.5)), dropout=0.0)
+    mt, mp, mq = (np.asarray(x, np.float64) for x in pj.simulate_measurements(1, t, p, q, sensor))
+    src = tmp_path / "meas.txt"
+    write_trajectory(src, Trajectory(mt, mp, mq))
+    outs = {}
+    for noise in ("auto", "config"):
+        out = tmp_path / f"{noise}.txt"
+        r = subprocess.run([sys.executable, "-m", "phjax", "smooth", str(src), "-o", str(out),
+                            "--measurement-noise", noise, "--no-cache"],
+                           capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        outs[noise] = read_trajectory(out).positions
+        if noise == "auto":
+            line = next(x for x in r.stdout.splitlines() if x.startswith("measurement noise"))
+            mm = float(line.split(":")[1].split("mm")[0])
+            assert 1.6 < mm < 2.4, line  # the simulated 2 mm, within 20 %
+    assert np.max(np.abs(outs["auto"] - outs["config"])) > 1e-5
