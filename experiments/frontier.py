@@ -518,16 +518,25 @@ def plot(out: Path):
     labels = {"pos_jerk": "position RMS jerk [m/s^3]", "rot_jerk": "angular RMS jerk [rad/s^3]",
               "pos_rmse_mm": "position RMSE [mm]", "rot_rmse_deg": "rotation RMSE [deg]",
               "pos_lag_ms": "position lag [ms]", "rot_lag_ms": "rotation lag [ms]"}
+    from matplotlib.ticker import FormatStrFormatter, NullFormatter
+
     for ax, (x, y) in zip(axes.ravel(), panels):
         ax.set_xscale("log")
-        if "rmse" in y:
+        ax.xaxis.set_minor_formatter(NullFormatter())  # decades only: no overlapping labels
+        ys = [v for line in ax.get_lines() for v in line.get_ydata() if np.isfinite(v)]
+        if "rmse" in y:  # zoom on the region where the methods differ
             ax.set_yscale("log")
+            ax.set_ylim(0.9 * min(ys), 2.5 * min(ys))
+            ax.yaxis.set_minor_formatter(FormatStrFormatter("%.3g"))
+            ax.yaxis.set_major_formatter(FormatStrFormatter("%.3g"))
+        else:
+            ax.set_ylim(min(-5.0, min(ys) - 2), 60.0)
         ax.set_xlabel(labels[x])
         ax.set_ylabel(labels[y])
         ax.grid(alpha=0.3, which="both")
     axes[0, 0].legend(fontsize=7)
     fig.suptitle("Test split, median over recordings; each line sweeps the method's knob, "
-                 "circles = tuned on train; lower-left is better", fontsize=10)
+                 "circles = tuned on train; lower-left is better (y zoomed: heavily smoothed ends are cut)", fontsize=10)
     fig.tight_layout()
     fig.savefig(out / "frontier.png", dpi=120)
 
