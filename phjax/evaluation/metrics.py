@@ -391,10 +391,22 @@ def mean_abs_torsion(
     return Metric(float(np.mean(tau)), int(ok.sum()))
 
 
-def _one_sided(t, x, idx, boundary_value_index):
-    """Second-order one-sided derivative at sample ``boundary_value_index`` from rows ``idx``."""
-    w = _fd_weights(t[idx] - t[boundary_value_index][:, None], 1)
-    return np.einsum("bj,bjd->bd", w, x[idx])
+def _max_jump(times, x, boundary_times, local) -> Metric:
+    """Largest ``|D(b+) - D(b-)|`` over the boundaries: ``D`` is the second-order one-sided
+    derivative at the end sample ``e`` of each three-sample window of :func:`_boundary_windows`,
+    of the values ``local(x, idx, e)`` ``(b, 3, d)`` of the window rows ``idx``."""
+    t, x = _as64(times), _as64(x)
+    _check_times(t, x.shape[0])
+    left, right = _boundary_windows(t, _finite_rows(x), boundary_times)
+    if left.shape[0] == 0:
+        return _NAN
+
+    def side(idx, e):
+        w = _fd_weights(t[idx] - t[e][:, None], 1)
+        return np.einsum("bj,bjd->bd", w, local(x, idx, e))
+
+    jump = np.linalg.norm(side(right, right[:, 0]) - side(left, left[:, -1]), axis=-1)
+    return Metric(float(np.max(jump)), int(left.shape[0]))
 
 
 def _boundary_windows(t, valid, boundary_times):
@@ -429,15 +441,7 @@ def max_velocity_jump(
     "jump" that shrinks with the sample spacing (see ``docs/results.md``). Boundaries without
     three finite samples on each side are ignored; ``count`` = boundaries used.
     """
-    t, x = _as64(times), _as64(positions)
-    _check_times(t, x.shape[0])
-    left, right = _boundary_windows(t, _finite_rows(x), boundary_times)
-    if left.shape[0] == 0:
-        return _NAN
-    v_minus = _one_sided(t, x, left, left[:, -1])
-    v_plus = _one_sided(t, x, right, right[:, 0])
-    jump = np.linalg.norm(v_plus - v_minus, axis=-1)
-    return Metric(float(np.max(jump)), int(left.shape[0]))
+    return _max_jump(times, positions, boundary_times, lambda x, idx, e: x[idx])
 
 
 @_over_recordings(times="times", quaternions="rows", boundary_times="set")
@@ -451,20 +455,10 @@ def max_angular_velocity_jump(
     As :func:`max_velocity_jump`, differentiating the rotation vectors ``log(q_j q_e*)`` of the
     three samples on each side relative to the end sample ``e`` at the boundary.
     """
-    t, q = _as64(times), _as64(quaternions)
-    _check_times(t, q.shape[0])
-    left, right = _boundary_windows(t, _finite_rows(q), boundary_times)
-    if left.shape[0] == 0:
-        return _NAN
-    q = _np_qnormalize(np.where(_finite_rows(q)[:, None], q, np.array([1.0, 0, 0, 0])))
+    def rotvecs(q, idx, e):  # window rows are finite
+        return _np_rotvec(_np_qmul(_np_qnormalize(q[idx]), _np_qconj(_np_qnormalize(q[e]))[:, None]))
 
-    def side(idx, e):
-        phi = _np_rotvec(_np_qmul(q[idx], _np_qconj(q[e])[:, None, :]))
-        w = _fd_weights(t[idx] - t[e][:, None], 1)
-        return np.einsum("bj,bjd->bd", w, phi)
-
-    jump = np.linalg.norm(side(right, right[:, 0]) - side(left, left[:, -1]), axis=-1)
-    return Metric(float(np.max(jump)), int(left.shape[0]))
+    return _max_jump(times, quaternions, boundary_times, rotvecs)
 
 
 # ----------------------------------------------------------------------------------------------
