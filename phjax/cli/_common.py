@@ -168,9 +168,11 @@ def add_rate_argument(parser, what: str = "render rate") -> None:
 
 
 def add_sensor_arguments(parser, seed_help: str = "random seed (default 0)") -> None:
-    """The simulated sensor's options (:class:`phjax.motion.simulate.SensorModel`):
-    ``--camera-rate`` (Hz), ``--sigma-p`` (mm), ``--sigma-r`` (deg), ``--dropout``, ``--jitter``
-    and ``--seed``, on ``parser`` (a parser or an argument group)."""
+    """The render rate ``--rate`` and the simulated sensor's options
+    (:class:`phjax.motion.simulate.SensorModel`): ``--camera-rate`` (Hz), ``--sigma-p`` (mm),
+    ``--sigma-r`` (deg), ``--dropout``, ``--jitter`` and ``--seed``, on ``parser`` (a parser or
+    an argument group)."""
+    add_rate_argument(parser)
     parser.add_argument("--camera-rate", type=positive_float, default=30.0,
                         help="measurement rate, Hz (default 30)")
     parser.add_argument("--sigma-p", type=nonnegative_float, default=5.0,

@@ -147,8 +147,7 @@ def cmd_smooth(args) -> int:
 
 
 def _sensor_args(p, rgbd: bool = False):
-    add_sensor_arguments(p.add_argument_group("sensor model"))
-    add_rate_argument(p)
+    add_sensor_arguments(p.add_argument_group("sensor model and rendering"))
     p.add_argument("--plot", default="phjax_evaluation.png", metavar="PNG",
                    help="output: the PNG plot (default phjax_evaluation.png in the current "
                    "folder; '' for none); an existing file is replaced (the output says so)"

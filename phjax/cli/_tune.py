@@ -15,7 +15,6 @@ import numpy as np
 from ._common import (
     add_format_argument,
     add_output_argument,
-    add_rate_argument,
     add_sensor_arguments,
     check_output,
     positive_float,
@@ -223,6 +222,5 @@ def add_commands(sub) -> None:
                    help="weight of the rotation terms (default 1)")
     add_config_argument(p)
     g = p.add_argument_group("sensor model and rendering")
-    add_rate_argument(g)
     add_sensor_arguments(g, "random seed of the sensor simulation")
     p.set_defaults(func=cmd_tune)
