@@ -391,21 +391,24 @@ def mean_abs_torsion(
     return Metric(float(np.mean(tau)), int(ok.sum()))
 
 
-def _max_jump(times, x, boundary_times, local) -> Metric:
-    """Largest ``|D(b+) - D(b-)|`` over the boundaries: ``D`` is the second-order one-sided
-    derivative at the end sample ``e`` of each three-sample window of :func:`_boundary_windows`,
-    of the values ``local(x, idx, e)`` ``(b, 3, d)`` of the window rows ``idx``."""
+def _one_sided(t, x, idx, boundary_value_index, local=None):
+    """Second-order one-sided derivative at sample ``boundary_value_index`` from rows ``idx``
+    of ``x`` (or of the window values ``local(x, idx, boundary_value_index)``, ``(b, 3, d)``)."""
+    e = boundary_value_index
+    w = _fd_weights(t[idx] - t[e][:, None], 1)
+    return np.einsum("bj,bjd->bd", w, x[idx] if local is None else local(x, idx, e))
+
+
+def _max_jump(times, x, boundary_times, local=None) -> Metric:
+    """Largest ``|D(b+) - D(b-)|`` over the boundaries of :func:`_boundary_windows`, ``D`` the
+    :func:`_one_sided` derivative at the window's sample nearest to ``b``."""
     t, x = _as64(times), _as64(x)
     _check_times(t, x.shape[0])
     left, right = _boundary_windows(t, _finite_rows(x), boundary_times)
     if left.shape[0] == 0:
         return _NAN
-
-    def side(idx, e):
-        w = _fd_weights(t[idx] - t[e][:, None], 1)
-        return np.einsum("bj,bjd->bd", w, local(x, idx, e))
-
-    jump = np.linalg.norm(side(right, right[:, 0]) - side(left, left[:, -1]), axis=-1)
+    jump = np.linalg.norm(_one_sided(t, x, right, right[:, 0], local)
+                          - _one_sided(t, x, left, left[:, -1], local), axis=-1)
     return Metric(float(np.max(jump)), int(left.shape[0]))
 
 
@@ -441,7 +444,7 @@ def max_velocity_jump(
     "jump" that shrinks with the sample spacing (see ``docs/results.md``). Boundaries without
     three finite samples on each side are ignored; ``count`` = boundaries used.
     """
-    return _max_jump(times, positions, boundary_times, lambda x, idx, e: x[idx])
+    return _max_jump(times, positions, boundary_times)
 
 
 @_over_recordings(times="times", quaternions="rows", boundary_times="set")
