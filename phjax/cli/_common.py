@@ -1,5 +1,5 @@
 """Shared pieces of the ``phjax`` CLI: the one-line error path, argument types, input files read
-through :mod:`phjax.io`, output-file checks.
+through :mod:`phjax.io`, output-file checks, options shared by several commands.
 
 User errors (bad arguments, missing / unreadable / malformed files, too little data) end in
 :func:`phjax.cli.main` as ONE line on stderr, ``phjax <command>: error: <what>`` naming the file
@@ -15,6 +15,10 @@ from pathlib import Path
 
 __all__ = [
     "Parser",
+    "add_format_argument",
+    "add_output_argument",
+    "add_rate_argument",
+    "add_sensor_arguments",
     "check_output",
     "format_user_error",
     "nonnegative_float",
@@ -138,3 +142,45 @@ def replaced_note(path) -> str:
     """``" (replaced the existing file)"`` when ``path`` exists, else ``""``: the commands
     overwrite their outputs and say so on the line that names the written file."""
     return " (replaced the existing file)" if Path(path).is_file() else ""
+
+
+# ----------------------------------------------------------------------------------------------
+# options shared by several commands
+
+
+def add_format_argument(parser, what: str = "input format") -> None:
+    """``--format`` (a :mod:`phjax.io` input format, default ``auto``); ``what`` starts its help."""
+    parser.add_argument("--format", default="auto", choices=INPUT_FORMATS,
+                        help=f"{what} (default auto)")
+
+
+def add_output_argument(parser, what: str) -> None:
+    """Required ``-o/--output``: ``what`` starts its help, which adds that an existing file is
+    replaced."""
+    parser.add_argument("-o", "--output", required=True,
+                        help=f"{what}; an existing file is replaced (the output says so)")
+
+
+def add_rate_argument(parser, what: str = "render rate") -> None:
+    """``--rate`` in Hz (default 120); ``what`` starts its help."""
+    parser.add_argument("--rate", type=positive_float, default=120.0,
+                        help=f"{what}, Hz (default 120)")
+
+
+def add_sensor_arguments(parser, seed_help: str = "random seed (default 0)") -> None:
+    """The render rate ``--rate`` and the simulated sensor's options
+    (:class:`phjax.motion.simulate.SensorModel`): ``--camera-rate`` (Hz), ``--sigma-p`` (mm),
+    ``--sigma-r`` (deg), ``--dropout``, ``--jitter`` and ``--seed``, on ``parser`` (a parser or
+    an argument group)."""
+    add_rate_argument(parser)
+    parser.add_argument("--camera-rate", type=positive_float, default=30.0,
+                        help="measurement rate, Hz (default 30)")
+    parser.add_argument("--sigma-p", type=nonnegative_float, default=5.0,
+                        help="position noise std, mm (default 5)")
+    parser.add_argument("--sigma-r", type=nonnegative_float, default=1.0,
+                        help="rotation noise std per axis, deg (default 1)")
+    parser.add_argument("--dropout", type=unit_interval, default=0.05,
+                        help="fraction of lost frames (default 0.05)")
+    parser.add_argument("--jitter", type=nonnegative_float, default=0.0,
+                        help="timestamp jitter, fraction of the period")
+    parser.add_argument("--seed", type=int, default=0, help=seed_help)

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._common import INPUT_FORMATS, Parser, format_user_error, positive_int, read_input
+from ._common import Parser, add_format_argument, format_user_error, positive_int, read_input
 
 __all__ = ["build_parser", "main"]
 
@@ -145,8 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "curvature, torsion and timing. Writes no file.")
     p.add_argument("input", nargs="?", help="trajectory file (TUM, EuRoC, CSV; default: the "
                    "fr1_xyz ground truth)")
-    p.add_argument("--format", default="auto", choices=INPUT_FORMATS,
-                   help="input format (default auto)")
+    add_format_argument(p)
     p.add_argument("--segments", type=positive_int, default=100000,
                    help="maximum number of segments")
     p.add_argument("--stride", type=positive_int, default=1, help="use every STRIDE-th pose")

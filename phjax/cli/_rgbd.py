@@ -7,7 +7,13 @@ from collections import Counter
 
 import numpy as np
 
-from ._common import check_output, positive_float, positive_int, replaced_note
+from ._common import (
+    add_output_argument,
+    add_rate_argument,
+    check_output,
+    positive_int,
+    replaced_note,
+)
 from ._tune import add_noise_argument, with_noise_from_args
 
 
@@ -121,10 +127,8 @@ def add_commands(sub) -> None:
         "as a TUM trajectory (head pose in the colour camera frame). SOURCE: a Biwi Kinect "
         "folder, a TUM RGB-D folder, a color/ + depth/ folder, or 'synthetic[:N[:SEED]]'.")
     p.add_argument("source", help="RGB-D source (folder or synthetic[:N[:SEED]])")
-    p.add_argument("-o", "--output", required=True,
-                   help="output: the render-rate trajectory (.tum/.txt = TUM, .csv = CSV); an "
-                   "existing file is replaced (the output says so)")
-    p.add_argument("--rate", type=positive_float, default=120.0, help="render rate, Hz (default 120)")
+    add_output_argument(p, "output: the render-rate trajectory (.tum/.txt = TUM, .csv = CSV)")
+    add_rate_argument(p)
     p.add_argument("--backend", choices=("opencv", "kornia"), default="opencv",
                    help="face detector backend (default opencv)")
     p.add_argument("--model-dir", default=None,

@@ -7,14 +7,15 @@ import time
 import numpy as np
 
 from ._common import (
-    INPUT_FORMATS,
     OUTPUT_FORMATS,
+    add_format_argument,
+    add_output_argument,
+    add_rate_argument,
+    add_sensor_arguments,
     check_output,
-    nonnegative_float,
     positive_float,
     read_input,
     replaced_note,
-    unit_interval,
 )
 from ._tune import add_config_argument, add_noise_argument
 
@@ -146,19 +147,7 @@ def cmd_smooth(args) -> int:
 
 
 def _sensor_args(p, rgbd: bool = False):
-    g = p.add_argument_group("sensor model")
-    g.add_argument("--camera-rate", type=positive_float, default=30.0,
-                   help="measurement rate, Hz (default 30)")
-    g.add_argument("--sigma-p", type=nonnegative_float, default=5.0,
-                   help="position noise std, mm (default 5)")
-    g.add_argument("--sigma-r", type=nonnegative_float, default=1.0,
-                   help="rotation noise std per axis, deg (default 1)")
-    g.add_argument("--dropout", type=unit_interval, default=0.05,
-                   help="fraction of lost frames (default 0.05)")
-    g.add_argument("--jitter", type=nonnegative_float, default=0.0,
-                   help="timestamp jitter, fraction of the period")
-    p.add_argument("--rate", type=positive_float, default=120.0, help="render rate, Hz (default 120)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    add_sensor_arguments(p.add_argument_group("sensor model and rendering"))
     p.add_argument("--plot", default="phjax_evaluation.png", metavar="PNG",
                    help="output: the PNG plot (default phjax_evaluation.png in the current "
                    "folder; '' for none); an existing file is replaced (the output says so)"
@@ -182,8 +171,7 @@ def add_commands(sub) -> None:
         "zoom on the fastest motion; --plot, default phjax_evaluation.png; with --rgbd the "
         "render-rate stream phjax_evaluation.tum instead).")
     p.add_argument("input", nargs="?", help="optional ground-truth trajectory file (TUM, EuRoC, CSV, ...)")
-    p.add_argument("--format", default="auto", choices=INPUT_FORMATS,
-                   help="format of INPUT (default auto)")
+    add_format_argument(p, "format of INPUT")
     p.add_argument("--duration", type=positive_float, default=60.0,
                    help="length of the synthetic motion, s")
     p.add_argument("--rgbd", type=int, default=0, metavar="N",
@@ -200,8 +188,7 @@ def add_commands(sub) -> None:
                        "column in bold) and write the PNG plot (--plot, default "
                        "phjax_evaluation.png).")
     p.add_argument("ground_truth", help="ground-truth trajectory (TUM .txt, EuRoC/TUM-VI .csv, phjax .csv)")
-    p.add_argument("--format", default="auto", choices=INPUT_FORMATS,
-                   help="input format (default auto)")
+    add_format_argument(p)
     _sensor_args(p)
     p.set_defaults(func=cmd_evaluate)
 
@@ -213,14 +200,10 @@ def add_commands(sub) -> None:
                        "(render times before the first valid pose are left out). At least 2 "
                        "poses are needed.")
     p.add_argument("input", help="measured trajectory file")
-    p.add_argument("-o", "--output", required=True,
-                   help="output file (.txt/.tum = TUM, .csv = plain CSV; see --out-format); an "
-                   "existing file is replaced (the output says so)")
-    p.add_argument("--rate", type=positive_float, default=120.0,
-                   help="output rate, Hz (default 120)")
+    add_output_argument(p, "output file (.txt/.tum = TUM, .csv = plain CSV; see --out-format)")
+    add_rate_argument(p, "output rate")
     p.add_argument("--offline", action="store_true", help="offline reconstruction (uses the future)")
-    p.add_argument("--format", default="auto", choices=INPUT_FORMATS,
-                   help="input format (default auto)")
+    add_format_argument(p)
     p.add_argument("--out-format", default="auto", choices=OUTPUT_FORMATS,
                    help="output format (default auto: by the extension of OUTPUT)")
     add_config_argument(p)

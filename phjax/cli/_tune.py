@@ -13,14 +13,14 @@ from pathlib import Path
 import numpy as np
 
 from ._common import (
-    INPUT_FORMATS,
+    add_format_argument,
+    add_output_argument,
+    add_sensor_arguments,
     check_output,
-    nonnegative_float,
     positive_float,
     positive_int,
     read_input,
     replaced_note,
-    unit_interval,
 )
 
 __all__ = ["add_commands", "add_config_argument", "add_noise_argument", "config_from_args",
@@ -208,11 +208,8 @@ def add_commands(sub) -> None:
                    help="ground-truth trajectory file(s) (TUM, EuRoC, CSV, ...)")
     p.add_argument("--lambda", dest="lam", type=float, required=True,
                    help="weight of the jerk terms (0 = accuracy only; 1 = equal weight)")
-    p.add_argument("-o", "--output", required=True,
-                   help="output JSON file (the tuned configuration); an existing file is "
-                   "replaced (the output says so)")
-    p.add_argument("--format", default="auto", choices=INPUT_FORMATS,
-                   help="input format (default auto)")
+    add_output_argument(p, "output JSON file (the tuned configuration)")
+    add_format_argument(p)
     p.add_argument("--seconds", type=positive_float, default=None,
                    help="use only the first S seconds of each file")
     p.add_argument("--max-steps", type=positive_int, default=50, help="maximum BFGS steps (default 50)")
@@ -225,15 +222,5 @@ def add_commands(sub) -> None:
                    help="weight of the rotation terms (default 1)")
     add_config_argument(p)
     g = p.add_argument_group("sensor model and rendering")
-    g.add_argument("--rate", type=positive_float, default=120.0, help="render rate, Hz (default 120)")
-    g.add_argument("--camera-rate", type=positive_float, default=30.0,
-                   help="measurement rate, Hz (default 30)")
-    g.add_argument("--sigma-p", type=nonnegative_float, default=5.0, help="position noise std, mm (default 5)")
-    g.add_argument("--sigma-r", type=nonnegative_float, default=1.0,
-                   help="rotation noise std per axis, deg (default 1)")
-    g.add_argument("--dropout", type=unit_interval, default=0.05,
-                   help="fraction of lost frames (default 0.05)")
-    g.add_argument("--jitter", type=nonnegative_float, default=0.0,
-                   help="timestamp jitter, fraction of the period")
-    g.add_argument("--seed", type=int, default=0, help="random seed of the sensor simulation")
+    add_sensor_arguments(g, "random seed of the sensor simulation")
     p.set_defaults(func=cmd_tune)

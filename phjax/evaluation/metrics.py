@@ -247,14 +247,20 @@ def _over_recordings(**kinds: str):
 # ----------------------------------------------------------------------------------------------
 
 
-@_over_recordings(est="rows", gt="rows")
-def position_rmse(est: Float[ArrayLike, "n 3"], gt: Float[ArrayLike, "n 3"]) -> Metric:
-    """Root-mean-square Euclidean position error (m) over rows finite in both inputs."""
+def _common_rows(est, gt):
+    """``est`` and ``gt`` as float64 (same shape, else ``ValueError``), the mask of rows finite
+    in both and its count."""
     est, gt = _as64(est), _as64(gt)
     if est.shape != gt.shape:
         raise ValueError(f"shape mismatch: {est.shape} vs {gt.shape}")
     ok = _finite_rows(est) & _finite_rows(gt)
-    n = int(ok.sum())
+    return est, gt, ok, int(ok.sum())
+
+
+@_over_recordings(est="rows", gt="rows")
+def position_rmse(est: Float[ArrayLike, "n 3"], gt: Float[ArrayLike, "n 3"]) -> Metric:
+    """Root-mean-square Euclidean position error (m) over rows finite in both inputs."""
+    est, gt, ok, n = _common_rows(est, gt)
     if n == 0:
         return _NAN
     err = np.sum((est[ok] - gt[ok]) ** 2, axis=-1)
@@ -269,11 +275,7 @@ def _geodesic_angle(q_est: np.ndarray, q_gt: np.ndarray) -> np.ndarray:
 @_over_recordings(q_est="rows", q_gt="rows")
 def rotation_rmse_deg(q_est: Float[ArrayLike, "n 4"], q_gt: Float[ArrayLike, "n 4"]) -> Metric:
     """RMS geodesic rotation error in degrees (angle of ``q_est* q_gt``; sign-invariant)."""
-    q_est, q_gt = _as64(q_est), _as64(q_gt)
-    if q_est.shape != q_gt.shape:
-        raise ValueError(f"shape mismatch: {q_est.shape} vs {q_gt.shape}")
-    ok = _finite_rows(q_est) & _finite_rows(q_gt)
-    n = int(ok.sum())
+    q_est, q_gt, ok, n = _common_rows(q_est, q_gt)
     if n == 0:
         return _NAN
     ang = _geodesic_angle(q_est[ok], q_gt[ok])
@@ -389,10 +391,25 @@ def mean_abs_torsion(
     return Metric(float(np.mean(tau)), int(ok.sum()))
 
 
-def _one_sided(t, x, idx, boundary_value_index):
-    """Second-order one-sided derivative at sample ``boundary_value_index`` from rows ``idx``."""
-    w = _fd_weights(t[idx] - t[boundary_value_index][:, None], 1)
-    return np.einsum("bj,bjd->bd", w, x[idx])
+def _one_sided(t, x, idx, boundary_value_index, local=None):
+    """Second-order one-sided derivative at sample ``boundary_value_index`` from rows ``idx``
+    of ``x`` (or of the window values ``local(x, idx, boundary_value_index)``, ``(b, 3, d)``)."""
+    e = boundary_value_index
+    w = _fd_weights(t[idx] - t[e][:, None], 1)
+    return np.einsum("bj,bjd->bd", w, x[idx] if local is None else local(x, idx, e))
+
+
+def _max_jump(times, x, boundary_times, local=None) -> Metric:
+    """Largest ``|D(b+) - D(b-)|`` over the boundaries of :func:`_boundary_windows`, ``D`` the
+    :func:`_one_sided` derivative at the window's sample nearest to ``b``."""
+    t, x = _as64(times), _as64(x)
+    _check_times(t, x.shape[0])
+    left, right = _boundary_windows(t, _finite_rows(x), boundary_times)
+    if left.shape[0] == 0:
+        return _NAN
+    jump = np.linalg.norm(_one_sided(t, x, right, right[:, 0], local)
+                          - _one_sided(t, x, left, left[:, -1], local), axis=-1)
+    return Metric(float(np.max(jump)), int(left.shape[0]))
 
 
 def _boundary_windows(t, valid, boundary_times):
@@ -427,15 +444,7 @@ def max_velocity_jump(
     "jump" that shrinks with the sample spacing (see ``docs/results.md``). Boundaries without
     three finite samples on each side are ignored; ``count`` = boundaries used.
     """
-    t, x = _as64(times), _as64(positions)
-    _check_times(t, x.shape[0])
-    left, right = _boundary_windows(t, _finite_rows(x), boundary_times)
-    if left.shape[0] == 0:
-        return _NAN
-    v_minus = _one_sided(t, x, left, left[:, -1])
-    v_plus = _one_sided(t, x, right, right[:, 0])
-    jump = np.linalg.norm(v_plus - v_minus, axis=-1)
-    return Metric(float(np.max(jump)), int(left.shape[0]))
+    return _max_jump(times, positions, boundary_times)
 
 
 @_over_recordings(times="times", quaternions="rows", boundary_times="set")
@@ -449,25 +458,39 @@ def max_angular_velocity_jump(
     As :func:`max_velocity_jump`, differentiating the rotation vectors ``log(q_j q_e*)`` of the
     three samples on each side relative to the end sample ``e`` at the boundary.
     """
-    t, q = _as64(times), _as64(quaternions)
-    _check_times(t, q.shape[0])
-    left, right = _boundary_windows(t, _finite_rows(q), boundary_times)
-    if left.shape[0] == 0:
-        return _NAN
-    q = _np_qnormalize(np.where(_finite_rows(q)[:, None], q, np.array([1.0, 0, 0, 0])))
+    def rotvecs(q, idx, e):  # window rows are finite
+        return _np_rotvec(_np_qmul(_np_qnormalize(q[idx]), _np_qconj(_np_qnormalize(q[e]))[:, None]))
 
-    def side(idx, e):
-        phi = _np_rotvec(_np_qmul(q[idx], _np_qconj(q[e])[:, None, :]))
-        w = _fd_weights(t[idx] - t[e][:, None], 1)
-        return np.einsum("bj,bjd->bd", w, phi)
-
-    jump = np.linalg.norm(side(right, right[:, 0]) - side(left, left[:, -1]), axis=-1)
-    return Metric(float(np.max(jump)), int(left.shape[0]))
+    return _max_jump(times, quaternions, boundary_times, rotvecs)
 
 
 # ----------------------------------------------------------------------------------------------
 # latency
 # ----------------------------------------------------------------------------------------------
+
+
+def _lag_inputs(times, est, gt, kind):
+    """Checked float64 ``(t, est, gt, kind)`` of :func:`latency` / :func:`shift_lag` (``kind``
+    from the width ``d`` when ``None``)."""
+    t, e, g = _as64(times), _as64(est), _as64(gt)
+    if e.shape != g.shape or e.ndim != 2:
+        raise ValueError(f"est and gt must have the same (n, d) shape, got {e.shape}, {g.shape}")
+    _check_times(t, e.shape[0])
+    if kind is None:
+        kind = {3: "position", 4: "rotation"}.get(e.shape[1])
+    if kind not in ("position", "rotation"):
+        raise ValueError("kind must be 'position' or 'rotation' (or d must be 3 or 4)")
+    return t, e, g, kind
+
+
+def _parabola_vertex(c: np.ndarray, maximum: bool) -> float:
+    """Offset (in grid steps) of the vertex of the parabola through ``c = (c_-1, c_0, c_1)`` from
+    the middle point; 0 when the parabola does not open the right way for a ``maximum`` /
+    minimum or a value is not finite."""
+    den = c[0] - 2 * c[1] + c[2]
+    if not np.all(np.isfinite(c)) or not (den < 0 if maximum else den > 0):
+        return 0.0
+    return float(0.5 * (c[0] - c[2]) / den)
 
 
 @_over_recordings(times="times", est="rows", gt="rows")
@@ -502,14 +525,7 @@ def latency(
     staircase the estimate is about half the hold period minus half a render period (velocity
     samples sit at interval midpoints).
     """
-    t, e, g = _as64(times), _as64(est), _as64(gt)
-    if e.shape != g.shape or e.ndim != 2:
-        raise ValueError(f"est and gt must have the same (n, d) shape, got {e.shape}, {g.shape}")
-    _check_times(t, e.shape[0])
-    if kind is None:
-        kind = {3: "position", 4: "rotation"}.get(e.shape[1])
-    if kind not in ("position", "rotation"):
-        raise ValueError("kind must be 'position' or 'rotation' (or d must be 3 or 4)")
+    t, e, g, kind = _lag_inputs(times, est, gt, kind)
     nan = Latency(float("nan"), float("nan"), 0)
     if t.shape[0] < 4:
         return nan
@@ -542,11 +558,8 @@ def latency(
         return nan
     k = int(np.nanargmax(corr))
     lag = lags[k]
-    if 0 < k < len(lags) - 1 and np.isfinite(corr[k - 1]) and np.isfinite(corr[k + 1]):
-        c0, c1, c2 = corr[k - 1], corr[k], corr[k + 1]
-        den = c0 - 2 * c1 + c2
-        if den < 0:
-            lag = lag + 0.5 * (c0 - c2) / den * h
+    if 0 < k < len(lags) - 1:
+        lag += _parabola_vertex(corr[k - 1 : k + 2], maximum=True) * h
     return Latency(float(lag), float(corr[k]), int(counts[k]))
 
 
@@ -595,14 +608,7 @@ def shift_lag(
         ``Lag(lag, rmse_at_lag, count)``; positive lag = estimate behind. NaN with count 0 when
         fewer than 3 samples can be scored.
     """
-    t, e, g = _as64(times), _as64(est), _as64(gt)
-    if e.shape != g.shape or e.ndim != 2:
-        raise ValueError(f"est and gt must have the same (n, d) shape, got {e.shape}, {g.shape}")
-    _check_times(t, e.shape[0])
-    if kind is None:
-        kind = {3: "position", 4: "rotation"}.get(e.shape[1])
-    if kind not in ("position", "rotation"):
-        raise ValueError("kind must be 'position' or 'rotation' (or d must be 3 or 4)")
+    t, e, g, kind = _lag_inputs(times, est, gt, kind)
     if not (step > 0 and min_lag < max_lag):
         raise ValueError("need step > 0 and min_lag < max_lag")
     nan = Lag(float("nan"), float("nan"), 0)
@@ -622,10 +628,7 @@ def shift_lag(
     k = int(np.argmin(rmse))
     lag = float(lags[k])
     if 0 < k < len(lags) - 1:
-        c0, c1, c2 = rmse[k - 1], rmse[k], rmse[k + 1]
-        den = c0 - 2 * c1 + c2
-        if den > 0:
-            lag += 0.5 * (c0 - c2) / den * step
+        lag += _parabola_vertex(rmse[k - 1 : k + 2], maximum=False) * step
     return Lag(lag, float(rmse[k]), count)
 
 

@@ -96,6 +96,59 @@ def _check_inputs(times, positions, quaternions, render_times):
         raise ValueError("need at least one measurement and 1-D render_times")
 
 
+def _jnp_inputs(times, positions, quaternions, render_times):
+    """The four inputs as JAX arrays, checked by :func:`_check_inputs`."""
+    times, positions = jnp.asarray(times), jnp.asarray(positions)
+    quaternions, render_times = jnp.asarray(quaternions), jnp.asarray(render_times)
+    _check_inputs(times, positions, quaternions, render_times)
+    return times, positions, quaternions, render_times
+
+
+def _channels(times, positions, quaternions):
+    """Common dtype, times, valid-row masks and NaN-free positions / unit quaternions (invalid
+    rows replaced by zero / identity, so that they never enter the arithmetic) of a scan."""
+    dtype = jnp.result_type(positions, quaternions, times)
+    vp, vq = valid_rows(positions), valid_rows(quaternions)
+    p = jnp.where(vp[:, None], positions, 0).astype(dtype)
+    q = quat_normalize(jnp.where(vq[:, None], quaternions, jnp.asarray(_IDENTITY, dtype))
+                       .astype(dtype))
+    return times.astype(dtype), vp, vq, p, q
+
+
+def _commit(ok, new, old):
+    """``new`` where ``ok`` else ``old``, leaf by leaf (a channel's state update at a valid
+    measurement)."""
+    return jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, old)
+
+
+# Group operations of the two channels: ``plus(x, d)`` moves ``x`` by the tangent vector ``d``,
+# ``minus(z, x)`` is the tangent vector from ``x`` to ``z`` (R^3; SO(3) in the world-frame tangent
+# space, shortest arc).
+
+
+def _pos_plus(x, d):
+    return x + d
+
+
+def _pos_minus(z, x):
+    return z - x
+
+
+def _rot_plus(q, d):
+    return quat_normalize(quat_mul(quat_from_rotvec(d), q))
+
+
+def _rot_minus(z, q):
+    return quat_to_rotvec(quat_mul(z, quat_conj(q)))
+
+
+def _last_valid(valid: Array, k: Array) -> Array:
+    """Index of the last valid row with index ``<= k`` (``-1`` when there is none)."""
+    n = valid.shape[0]
+    last = lax.cummax(jnp.where(valid, jnp.arange(n), -1), axis=0)
+    return jnp.where(k >= 0, last[jnp.clip(k, 0, n - 1)], -1)
+
+
 # ----------------------------------------------------------------------------------------------
 # zero-order hold
 # ----------------------------------------------------------------------------------------------
@@ -103,10 +156,9 @@ def _check_inputs(times, positions, quaternions, render_times):
 
 def _hold_channel(x: Array, valid: Array, k: Array) -> Array:
     """Row of the last valid sample with index ``<= k`` (NaN when there is none)."""
-    n = x.shape[0]
-    last = lax.cummax(jnp.where(valid, jnp.arange(n), -1), axis=0)
-    i = jnp.where(k >= 0, last[jnp.clip(k, 0, n - 1)], -1)
-    return jnp.where((i >= 0)[:, None], x[jnp.clip(i, 0, n - 1)], jnp.asarray(jnp.nan, x.dtype))
+    i = _last_valid(valid, k)
+    return jnp.where((i >= 0)[:, None], x[jnp.clip(i, 0, x.shape[0] - 1)],
+                     jnp.asarray(jnp.nan, x.dtype))
 
 
 @jax.jit
@@ -121,9 +173,8 @@ def hold(
     Returns the measured pose unchanged (quaternion sign included); NaN before the first valid
     measurement of each channel.
     """
-    times, positions = jnp.asarray(times), jnp.asarray(positions)
-    quaternions, render_times = jnp.asarray(quaternions), jnp.asarray(render_times)
-    _check_inputs(times, positions, quaternions, render_times)
+    times, positions, quaternions, render_times = _jnp_inputs(times, positions, quaternions,
+                                                              render_times)
     k = jnp.searchsorted(times, render_times, side="right") - 1
     return (
         _hold_channel(positions, valid_rows(positions), k),
@@ -175,9 +226,8 @@ def one_euro(
     Returns:
         ``(positions (m, 3), quaternions (m, 4))`` at ``render_times``.
     """
-    times, positions = jnp.asarray(times), jnp.asarray(positions)
-    quaternions, render_times = jnp.asarray(quaternions), jnp.asarray(render_times)
-    _check_inputs(times, positions, quaternions, render_times)
+    times, positions, quaternions, render_times = _jnp_inputs(times, positions, quaternions,
+                                                              render_times)
     (xs, _, vp), (qs, _, vq) = _one_euro_scan(times, positions, quaternions, min_cutoff, beta,
                                               d_cutoff)
     k = jnp.searchsorted(times, render_times, side="right") - 1
@@ -187,52 +237,29 @@ def one_euro(
 def _one_euro_scan(times, positions, quaternions, min_cutoff, beta, d_cutoff):
     """One Euro states after every measurement: ``((x_hat, dx_hat, valid), (q_hat, w_hat,
     valid))`` (see :func:`one_euro`)."""
-    dtype = jnp.result_type(positions, quaternions, times)
-    t = times.astype(dtype)
+    t, vp, vq, p, q = _channels(times, positions, quaternions)
+    dtype = t.dtype
     min_cutoff, beta, d_cutoff = (jnp.asarray(v, dtype) for v in (min_cutoff, beta, d_cutoff))
-    vp, vq = valid_rows(positions), valid_rows(quaternions)
-    ident = jnp.asarray(_IDENTITY, dtype)
-    p = jnp.where(vp[:, None], positions, 0).astype(dtype)
-    q = quat_normalize(jnp.where(vq[:, None], quaternions, ident).astype(dtype))
+
+    def channel(state, ti, zi, ok, plus, minus):
+        # one channel, in the tangent space at the current estimate
+        init, tp, xh, dxh = state
+        te = ti - tp
+        e = minus(zi, xh)
+        dxh_new = dxh + _alpha(te, d_cutoff) * (safe_div(e, te) - dxh)
+        a = _alpha(te, min_cutoff + beta * safe_norm(dxh_new))
+        xh_new = jnp.where(init, plus(xh, a * e), zi)
+        dxh_new = jnp.where(init, dxh_new, 0)
+        return (init | ok, *_commit(ok, (ti, xh_new, dxh_new), (tp, xh, dxh)))
 
     def step(state, inp):
-        (init_p, tp, xh, dxh), (init_q, tq, qh, wh) = state
         ti, xi, ok_p, qi, ok_q = inp
-
-        # positions
-        te = ti - tp
-        a_d = _alpha(te, d_cutoff)
-        dx = safe_div(xi - xh, te)
-        dxh_new = dxh + a_d * (dx - dxh)
-        a = _alpha(te, min_cutoff + beta * safe_norm(dxh_new))
-        xh_new = xh + a * (xi - xh)
-        xh_new = jnp.where(init_p, xh_new, xi)
-        dxh_new = jnp.where(init_p, dxh_new, 0)
-        pos_state = (
-            init_p | ok_p,
-            jnp.where(ok_p, ti, tp),
-            jnp.where(ok_p, xh_new, xh),
-            jnp.where(ok_p, dxh_new, dxh),
-        )
-
-        # orientations (tangent space at the current estimate)
-        te = ti - tq
-        e = quat_to_rotvec(quat_mul(qi, quat_conj(qh)))
-        w = safe_div(e, te)
-        wh_new = wh + _alpha(te, d_cutoff) * (w - wh)
-        a = _alpha(te, min_cutoff + beta * safe_norm(wh_new))
-        qh_new = quat_normalize(quat_mul(quat_from_rotvec(a * e), qh))
-        qh_new = jnp.where(init_q, qh_new, qi)
-        wh_new = jnp.where(init_q, wh_new, 0)
-        rot_state = (
-            init_q | ok_q,
-            jnp.where(ok_q, ti, tq),
-            jnp.where(ok_q, qh_new, qh),
-            jnp.where(ok_q, wh_new, wh),
-        )
-        return (pos_state, rot_state), (pos_state[2], pos_state[3], rot_state[2], rot_state[3])
+        pos = channel(state[0], ti, xi, ok_p, _pos_plus, _pos_minus)
+        rot = channel(state[1], ti, qi, ok_q, _rot_plus, _rot_minus)
+        return (pos, rot), (pos[2], pos[3], rot[2], rot[3])
 
     zero = jnp.zeros(3, dtype)
+    ident = jnp.asarray(_IDENTITY, dtype)
     init = ((jnp.array(False), t[0], zero, zero), (jnp.array(False), t[0], ident, zero))
     _, (xs, dxs, qs, ws) = lax.scan(step, init, (t, p, vp, q, vq))
     return (xs, dxs, vp), (qs, ws, vq)
@@ -428,26 +455,16 @@ def _kalman_extrapolation_core(config, t, p, q, r):
 # ----------------------------------------------------------------------------------------------
 
 
-def _latest_valid(times, valid, render_times):
-    """Index of the last valid row with ``t <= tau`` per render time (``-1`` when none)."""
-    n = times.shape[0]
-    k = jnp.searchsorted(times, render_times, side="right") - 1
-    last = lax.cummax(jnp.where(valid, jnp.arange(n), -1), axis=0)
-    return jnp.where(k >= 0, last[jnp.clip(k, 0, n - 1)], -1)
-
-
 def _extrapolate(times, valid_p, valid_q, xs, vs, qs, ws, render_times):
     """``x_i + v_i (tau - t_i)`` and ``exp(w_i (tau - t_i)) q_i`` from the latest valid row
-    ``i`` of each channel (NaN before the first)."""
+    ``i`` (``t_i <= tau``) of each channel (NaN before the first)."""
+    k = jnp.searchsorted(times, render_times, side="right") - 1
     out = []
-    for valid, kind in ((valid_p, "p"), (valid_q, "q")):
-        i = _latest_valid(times, valid, render_times)
+    for valid, x, v, plus in ((valid_p, xs, vs, _pos_plus), (valid_q, qs, ws, _rot_plus)):
+        i = _last_valid(valid, k)
         j = jnp.clip(i, 0, times.shape[0] - 1)
         dt = (render_times - times[j]).astype(xs.dtype)[:, None]
-        if kind == "p":
-            val = xs[j] + vs[j] * dt
-        else:
-            val = quat_normalize(quat_mul(quat_from_rotvec(ws[j] * dt), qs[j]))
+        val = plus(x[j], v[j] * dt)
         out.append(jnp.where((i >= 0)[:, None], val, jnp.asarray(jnp.nan, xs.dtype)))
     return out[0], out[1]
 
@@ -481,47 +498,36 @@ def alpha_beta(
         Exact on constant-velocity motion (linear positions, constant world angular velocity)
         from the second sample on.
     """
-    times, positions = jnp.asarray(times), jnp.asarray(positions)
-    quaternions, render_times = jnp.asarray(quaternions), jnp.asarray(render_times)
-    _check_inputs(times, positions, quaternions, render_times)
-    dtype = jnp.result_type(positions, quaternions, times)
-    t = times.astype(dtype)
+    times, positions, quaternions, render_times = _jnp_inputs(times, positions, quaternions,
+                                                              render_times)
+    t, vp, vq, p, q = _channels(times, positions, quaternions)
+    dtype = t.dtype
     a = jnp.asarray(alpha, dtype)
     b = a * a / (2 - a) if beta is None else jnp.asarray(beta, dtype)
-    vp, vq = valid_rows(positions), valid_rows(quaternions)
-    ident = jnp.asarray(_IDENTITY, dtype)
-    p = jnp.where(vp[:, None], positions, 0).astype(dtype)
-    q = quat_normalize(jnp.where(vq[:, None], quaternions, ident).astype(dtype))
+
+    def channel(state, ti, zi, ok, plus, minus):
+        # count (0, 1, >= 2 valid samples so far), time, estimate, velocity of one channel
+        c, tp, x, v = state
+        te = ti - tp
+        xp = plus(x, v * te)
+        r = minus(zi, xp)
+        x_new = jnp.where(c >= 2, plus(xp, a * r), zi)
+        v_new = jnp.where(c >= 2, v + b * safe_div(r, te),
+                          jnp.where(c == 1, safe_div(minus(zi, x), te), 0))
+        return (jnp.where(ok, jnp.minimum(c + 1, 2), c),
+                *_commit(ok, (ti, x_new, v_new), (tp, x, v)))
 
     def step(state, inp):
-        (cp, tp, x, v), (cq, tq, qh, w) = state
         ti, zi, ok_p, qi, ok_q = inp
-        te = ti - tp
-        xp = x + v * te
-        r = zi - xp
-        x_new = jnp.where(cp >= 2, xp + a * r, zi)
-        v_new = jnp.where(cp >= 2, v + b * safe_div(r, te),
-                          jnp.where(cp == 1, safe_div(zi - x, te), 0))
-        pos = (jnp.where(ok_p, jnp.minimum(cp + 1, 2), cp), jnp.where(ok_p, ti, tp),
-               jnp.where(ok_p, x_new, x), jnp.where(ok_p, v_new, v))
-        te = ti - tq
-        qp = quat_normalize(quat_mul(quat_from_rotvec(w * te), qh))
-        rr = quat_to_rotvec(_hemi(quat_mul(qi, quat_conj(qp))))
-        q_new = jnp.where(cq >= 2, quat_normalize(quat_mul(quat_from_rotvec(a * rr), qp)), qi)
-        r1 = quat_to_rotvec(_hemi(quat_mul(qi, quat_conj(qh))))
-        w_new = jnp.where(cq >= 2, w + b * safe_div(rr, te), jnp.where(cq == 1, safe_div(r1, te), 0))
-        rot = (jnp.where(ok_q, jnp.minimum(cq + 1, 2), cq), jnp.where(ok_q, ti, tq),
-               jnp.where(ok_q, q_new, qh), jnp.where(ok_q, w_new, w))
+        pos = channel(state[0], ti, zi, ok_p, _pos_plus, _pos_minus)
+        rot = channel(state[1], ti, qi, ok_q, _rot_plus, _rot_minus)
         return (pos, rot), (pos[2], pos[3], rot[2], rot[3])
 
     zero = jnp.zeros(3, dtype)
+    ident = jnp.asarray(_IDENTITY, dtype)
     init = ((jnp.array(0), t[0], zero, zero), (jnp.array(0), t[0], ident, zero))
     _, (xs, vs, qs, ws) = lax.scan(step, init, (t, p, vp, q, vq))
     return _extrapolate(t, vp, vq, xs, vs, qs, ws, render_times.astype(dtype))
-
-
-def _hemi(q):
-    return jnp.where(q[..., :1] < 0, -q, q)
 
 
 @jax.jit
@@ -541,9 +547,8 @@ def one_euro_extrapolation(
     smoothed derivative: ``x_hat + dx_hat (tau - t)``, ``exp(w_hat (tau - t)) q_hat``. Same
     parameters as :func:`one_euro` (the knob: ``min_cutoff``).
     """
-    times, positions = jnp.asarray(times), jnp.asarray(positions)
-    quaternions, render_times = jnp.asarray(quaternions), jnp.asarray(render_times)
-    _check_inputs(times, positions, quaternions, render_times)
+    times, positions, quaternions, render_times = _jnp_inputs(times, positions, quaternions,
+                                                              render_times)
     (xs, dxs, vp), (qs, ws, vq) = _one_euro_scan(times, positions, quaternions, min_cutoff, beta,
                                                  d_cutoff)
     t = times.astype(xs.dtype)

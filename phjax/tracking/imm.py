@@ -53,8 +53,9 @@ from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize
 from .kalman import (
     _block,
     _canonical_rotvec,
+    _clamped_time,
     _float_dtype,
-    _hemisphere_sign,
+    _initial_moments,
     _measurement_validity,
     _rot_matrices,
     _select,
@@ -344,12 +345,6 @@ def _rot_qs(config: IMMConfig, dtype):
     return jnp.stack([m.q.astype(dtype) for m in config.rotation_models])
 
 
-def _clamped_dt(state, t):
-    t = jnp.asarray(t, state.t.dtype)
-    t_new = jnp.where(t > state.t, t, state.t)  # NaN or earlier t -> no-op
-    return t_new, (t_new - state.t).astype(state.x.dtype)
-
-
 def imm_init(
     config: IMMConfig,
     t: Float[ArrayLike, ""],
@@ -368,20 +363,9 @@ def imm_init(
         The state at the measured pose with zero velocities (``initialized == False`` if either
         part is missing; then identity orientation and zero position).
     """
-    position, quaternion = jnp.asarray(position), jnp.asarray(quaternion)
-    dtype = _float_dtype(position, quaternion)
-    t = jnp.asarray(t, _float_dtype(jnp.asarray(t)))
-    p, qm, pos_valid, rot_valid = _measurement_validity(position, quaternion, dtype)
-    valid = pos_valid & rot_valid
-    p = jnp.where(valid, p, 0)
-    qm = quat_normalize(jnp.where(valid, qm, jnp.asarray([1, 0, 0, 0], dtype)))
-    qm = qm * _hemisphere_sign(qm)
-    n, k, kr = config.order, len(config.position_models), len(config.rotation_models)
-    x = jnp.concatenate([p, jnp.zeros(3 * (n - 1), dtype)])
-    stds = [config.pos_meas_noise, config.init_pos_vel_std, config.init_pos_acc_std][:n]
-    var = jnp.concatenate([jnp.full(3, jnp.asarray(s, dtype) ** 2, dtype) for s in stds])
-    var_r = jnp.concatenate([jnp.full(3, jnp.asarray(config.rot_meas_noise, dtype) ** 2, dtype),
-                             jnp.full(3, jnp.asarray(config.init_rot_vel_std, dtype) ** 2, dtype)])
+    t, x, qm, var, var_r, valid = _initial_moments(config, t, position, quaternion)
+    dtype, n = x.dtype, config.order
+    k, kr = len(config.position_models), len(config.rotation_models)
     return IMMState(
         t=t,
         pos_log_mu=jnp.full(k, -math.log(k), dtype),
@@ -488,7 +472,7 @@ def imm_step(
     Returns:
         ``(state, info)``.
     """
-    t_new, dt = _clamped_dt(state, t)
+    t_new, dt = _clamped_time(state, t)
     dtype = state.x.dtype
     p_meas, q_meas, pos_valid, rot_valid = _measurement_validity(position, quaternion, dtype)
     # position: linear IMM
@@ -604,7 +588,7 @@ def imm_predict_pose(
     Returns:
         ``(position, quaternion, velocity, angular_velocity)``.
     """
-    _, dt = _clamped_dt(state, t)
+    _, dt = _clamped_time(state, t)
     fs, _ = _stack_position_models(config, dt)
     xs = jnp.einsum("kab,kb->ka", fs, state.x)
     mu = jnp.exp(state.pos_log_mu)

@@ -354,6 +354,33 @@ def _measurement_validity(position, quaternion, dtype):
     return p, qm, pos_valid, rot_valid
 
 
+def _initial_moments(config, t, position, quaternion):
+    """Mean and diagonal covariance of a state initialised from one pose measurement (shared by
+    :func:`kalman_init` and :func:`phjax.tracking.imm.imm_init`; ``config`` needs ``order`` and
+    the ``*_meas_noise`` / ``init_*_std`` fields).
+
+    Returns ``(t, x, q, var, var_r, valid)``: the time, the position-block state (measured
+    position, zero derivatives), the orientation (normalised, ``w >= 0``), the variances of the
+    position block and of the orientation / angular-velocity block, and whether both parts of
+    the measurement are valid (if not: zero position and identity orientation).
+    """
+    position, quaternion, t = jnp.asarray(position), jnp.asarray(quaternion), jnp.asarray(t)
+    dtype = _float_dtype(position, quaternion)
+    t = jnp.asarray(t, _float_dtype(t))
+    p, qm, pos_valid, rot_valid = _measurement_validity(position, quaternion, dtype)
+    valid = pos_valid & rot_valid
+    p = jnp.where(valid, p, 0)
+    qm = quat_normalize(jnp.where(valid, qm, jnp.asarray([1, 0, 0, 0], dtype)))
+    qm = qm * _hemisphere_sign(qm)
+    n = config.order
+    x = jnp.concatenate([p, jnp.zeros(3 * (n - 1), dtype)])
+    stds = [config.pos_meas_noise, config.init_pos_vel_std, config.init_pos_acc_std][:n]
+    var = jnp.concatenate([jnp.full(3, jnp.asarray(s, dtype) ** 2, dtype) for s in stds])
+    var_r = jnp.concatenate([jnp.full(3, jnp.asarray(config.rot_meas_noise, dtype) ** 2, dtype),
+                             jnp.full(3, jnp.asarray(config.init_rot_vel_std, dtype) ** 2, dtype)])
+    return t, x, qm, var, var_r, valid
+
+
 # ----------------------------------------------------------------------------------------------
 # public API
 
@@ -379,31 +406,13 @@ def kalman_init(
         is missing (NaN) the returned state has ``initialized == False`` (and the same
         covariances, identity orientation and zero position).
     """
-    position, quaternion, t = jnp.asarray(position), jnp.asarray(quaternion), jnp.asarray(t)
-    dtype = _float_dtype(position, quaternion)
-    t = jnp.asarray(t, _float_dtype(t))
-    p, qm, pos_valid, rot_valid = _measurement_validity(position, quaternion, dtype)
-    valid = pos_valid & rot_valid
-    ident = jnp.asarray([1, 0, 0, 0], dtype)
-    p = jnp.where(valid, p, 0)
-    qm = quat_normalize(jnp.where(valid, qm, ident))
-    qm = qm * _hemisphere_sign(qm)
-    n = config.order
-    x = jnp.concatenate([p, jnp.zeros(3 * (n - 1), dtype)])
-    stds = [config.pos_meas_noise, config.init_pos_vel_std, config.init_pos_acc_std][:n]
-    var = jnp.concatenate([jnp.full(3, jnp.asarray(s, dtype) ** 2, dtype) for s in stds])
-    var_r = jnp.concatenate(
-        [
-            jnp.full(3, jnp.asarray(config.rot_meas_noise, dtype) ** 2, dtype),
-            jnp.full(3, jnp.asarray(config.init_rot_vel_std, dtype) ** 2, dtype),
-        ]
-    )
+    t, x, qm, var, var_r, valid = _initial_moments(config, t, position, quaternion)
     return KalmanState(
         t=t,
         x=x,
         P=jnp.diag(var),
         q=qm,
-        w=jnp.zeros(3, dtype),
+        w=jnp.zeros(3, x.dtype),
         Pr=jnp.diag(var_r),
         initialized=valid,
         last_update=t,
