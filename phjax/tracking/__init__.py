@@ -51,6 +51,7 @@ from .kalman import (
 from .models import ConstantAcceleration, ConstantVelocity
 from .stream import TrackerStream
 from .tracker import (
+    RenderSegment,
     TrackerConfig,
     TrackerState,
     reconstruct,
@@ -84,6 +85,7 @@ __all__ = [
     "TUNED",
     "TrackerConfig",
     "TrackerState",
+    "RenderSegment",
     "TrackerStream",
     "TuningResult",
     "cubic_spline",
