@@ -162,7 +162,7 @@ def test_segment_starts_at_the_rendered_state_and_correction_decays(head):
 def test_track_equals_streaming_loop(head):
     """``track`` (one scan) equals the loop of ``tracker_update`` / ``tracker_sample``.
 
-    Both paths run the same ``_update`` / ``_eval_render`` code, so this checks the scan's
+    Both paths run the same ``_update`` / ``RenderSegment.evaluate`` code, so this checks the scan's
     plumbing (causal selection of states, shapes, no recompilation), not the maths; the maths
     is covered independently by ``test_stream_is_c1_across_camera_frames`` and
     ``test_segment_starts_at_the_rendered_state_and_correction_decays`` (finite differences of
@@ -354,6 +354,42 @@ def test_gradient_through_track_wrt_config(head):
     h = 1e-6
     num = (loss(pj.TrackerConfig(horizon=0.05 + h)) - loss(pj.TrackerConfig(horizon=0.05 - h))) / (2 * h)
     np.testing.assert_allclose(float(g.horizon), float(num), rtol=1e-4)
+
+
+@pytest.mark.parametrize("imm", [False, True])
+def test_head_at_rest_values_and_gradients_finite(imm):
+    """A head at rest: every angular velocity is exactly zero (rotation increments of the
+    curves, coasting rotation), where ``|w|`` has no derivative. Samples inside both pieces,
+    while coasting and after stopping, their velocities (used by the next update) and the
+    gradients with respect to the measurements and the config stay finite."""
+    cfg = pj.TrackerConfig() if imm else pj.TrackerConfig(imm=None)
+    p0 = jnp.asarray([0.1, -0.2, 0.5])
+    q0 = jnp.asarray([1.0, 0.0, 0.0, 0.0])
+    taus = 2 / 30 + jnp.asarray([0.0, 0.005, 0.02, 0.1, 0.2, 1.0])
+
+    def run(cfg, p, q):
+        st = pj.tracker_init(cfg, 0.0, jnp.float64)
+        for k in range(3):
+            st = pj.tracker_update(cfg, st, k / 30, p, q)
+        return st
+
+    st = run(cfg, p0, q0)
+    np.testing.assert_array_equal(np.asarray(st.rotation.w1), 0.0)  # really at rest
+    P, Q = pj.tracker_sample(cfg, st, taus)
+    np.testing.assert_allclose(np.asarray(P), np.broadcast_to(p0, P.shape), atol=1e-12)
+    np.testing.assert_allclose(np.abs(np.asarray(Q)[:, 0]), 1.0, atol=1e-12)
+    _, v, _, w = jax.vmap(st.segment.evaluate)(taus)
+    assert np.all(np.isfinite(np.asarray(v))) and np.all(np.isfinite(np.asarray(w)))
+
+    def loss(cfg, p, q):
+        P, Q = pj.tracker_sample(cfg, run(cfg, p, q), taus)
+        return jnp.sum(P) + jnp.sum(Q * jnp.arange(4.0))
+
+    g_cfg, g_p, g_q = jax.grad(loss, argnums=(0, 1, 2))(cfg, p0, q0)
+    for x in jax.tree.leaves((g_cfg, g_p, g_q)):
+        assert np.all(np.isfinite(np.asarray(x)))
+    # the position gradient: the stream at rest follows a still head one to one
+    np.testing.assert_allclose(np.asarray(g_p), len(taus), rtol=1e-9)
 
 
 def test_float32_stream_close_to_float64(head):
