@@ -69,7 +69,7 @@ def test_stream_equals_pure_functions(meas, dtype, model):
 def test_stream_config_arrays_and_state_round_trip(meas):
     """The stream's config leaves are arrays of the state's dtype (converted once), booleans
     stay booleans, and the state setter / getter round-trip exactly."""
-    mt, mp, mq = meas
+    _, mp, mq = meas
     cfg = pj.TrackerConfig()
     s = pj.TrackerStream(cfg, dtype=jnp.float64)
     assert s.dtype == jnp.float64
