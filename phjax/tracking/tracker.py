@@ -23,8 +23,9 @@ smooth pose at any render time:
 
 Streaming API (jitted, static shapes, no recompilation per frame): :func:`tracker_init`,
 :func:`tracker_update` at camera rate, :func:`tracker_sample` at render rate. A host-side render
-loop can use :class:`phjax.TrackerStream` (a thin stateful wrapper of these two functions) and,
-on a CPU, gets the lowest latency with JAX's asynchronous dispatch turned off at program start (``jax.config.update("jax_cpu_enable_async_dispatch", False)``):
+loop can use :class:`phjax.TrackerStream` (a thin stateful wrapper of these two functions)
+and, on a CPU, gets the lowest latency with JAX's asynchronous dispatch turned off at program
+start (``jax.config.update("jax_cpu_enable_async_dispatch", False)``):
 for calls this short the hand-off to a worker thread costs more than the computation (see
 ``benchmarks/bench_tracker.py``). Calling the pure functions directly, pass a config converted
 once with :func:`tracker_config_arrays`.
