@@ -60,12 +60,11 @@ import numpy as np
 
 from .._np_quat import np_qconj, np_qmul
 from ..tracking.kalman import KalmanConfig
-from ..tracking.stream import TrackerStream
+from ..tracking.stream import TrackerStream, _on_leaves
 from ..tracking.tracker import (
     TrackerConfig,
     _filter_predict,
     _filter_step,
-    tracker_config_arrays,
     tracker_update,
 )
 from ._clock import RealClock, VirtualClock
@@ -93,9 +92,6 @@ def _late_update(config: TrackerConfig, state, t_meas, t_now, position, quaterni
     return choose(fresh | used, out, seeded)
 
 
-_late_update_jit = jax.jit(_late_update)
-
-
 class LiveStream(TrackerStream):
     """:class:`phjax.tracking.TrackerStream` with late measurements and a settable config.
 
@@ -110,8 +106,8 @@ class LiveStream(TrackerStream):
 
     def set_config(self, config: TrackerConfig) -> None:
         """Use another config of the same structure (no recompilation)."""
-        self._config = tracker_config_arrays(config, self.dtype)
-        self.config = config
+        super().set_config(config)
+        self._late = _on_leaves(_late_update, self._config_def, self._state_def)
 
     def update_late(self, t_measured: float, t_now: float, position, quaternion) -> None:
         """Feed a measurement taken at ``t_measured`` that arrives at ``t_now`` (module docs).
@@ -122,8 +118,8 @@ class LiveStream(TrackerStream):
             position: ``(3,)`` m, NaN if missing; quaternion: ``(4,)`` ``wxyz``, NaN if missing.
         """
         dt = self._dtype
-        self.state = _late_update_jit(self._config, self.state, dt(t_measured), dt(t_now),
-                                      np.asarray(position, dt), np.asarray(quaternion, dt))
+        self._leaves = self._late(self._config_leaves, self._leaves, dt(t_measured), dt(t_now),
+                                  np.asarray(position, dt), np.asarray(quaternion, dt))
 
 
 #: innovation gate of live configs: chi-square, 3 dof, p = 0.001

@@ -4,8 +4,10 @@
 :class:`phjax.TrackerConfig` / :class:`phjax.TrackerState` PyTrees; that is the form for
 ``jit``, ``vmap``, ``grad`` and ``lax.scan``. :class:`TrackerStream` holds the current state
 and the config (converted once to device arrays of the state's dtype, see
-:func:`phjax.tracker_config_arrays`) and calls those two compiled functions, so its results
-are theirs; ``stream.state`` gives or replaces the :class:`TrackerState` at any time.
+:func:`phjax.tracker_config_arrays`) as flat lists of their leaves and calls the same update
+and sample code jitted on those lists, so its results are theirs without flattening the nested
+modules in Python on every call; ``stream.state`` gives or replaces the :class:`TrackerState`
+at any time.
 
 For the lowest latency on a CPU turn off JAX's asynchronous dispatch at program start
 (``jax.config.update("jax_cpu_enable_async_dispatch", False)``); ``benchmarks/bench_tracker.py``
@@ -16,28 +18,51 @@ Inside ``jit`` / ``scan`` use the pure functions (``phjax.track`` is the whole-r
 
 from __future__ import annotations
 
+import functools
+
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .tracker import (
     TrackerConfig,
     TrackerState,
+    _sample,
+    _update,
     tracker_config_arrays,
     tracker_init,
-    tracker_sample,
-    tracker_update,
 )
 
 __all__ = ["TrackerStream"]
+
+
+@functools.cache
+def _on_leaves(fn, config_def, state_def):
+    """``jit(fn)`` on the flat leaf lists of a config and a state of the given structures,
+    returning the new state's leaves: the stream keeps its PyTrees flattened, so a call does not
+    flatten and rebuild the nested equinox modules in Python (about a quarter of an update's
+    time on a CPU, see ``benchmarks/README.md``)."""
+    def on_leaves(config_leaves, state_leaves, *args):
+        config = jax.tree.unflatten(config_def, config_leaves)
+        state = jax.tree.unflatten(state_def, state_leaves)
+        return jax.tree.leaves(fn(config, state, *args))
+
+    return jax.jit(on_leaves)
+
+
+@functools.cache
+def _sample_on_leaves(segment_def):
+    """``jit(_sample)`` on the flat leaf list of a render segment."""
+    return jax.jit(lambda leaves, t: _sample(jax.tree.unflatten(segment_def, leaves), t))
 
 
 class TrackerStream:
     """Stateful real-time driver of the streaming tracker (host-side render loops).
 
     ``update`` feeds a camera-rate measurement (:func:`phjax.tracker_update`), ``sample``
-    renders (:func:`phjax.tracker_sample`). Shapes are static: nothing recompiles per frame.
-    Replacing :attr:`state` is atomic, so a capture thread may update while a render thread
-    samples.
+    renders (:func:`phjax.tracker_sample`), with the same results. Shapes are static: nothing
+    recompiles per frame. The state is replaced atomically by an update, so a capture thread
+    may update while a render thread samples.
 
     Arguments:
         config: tracker configuration (default :class:`phjax.TrackerConfig()`).
@@ -52,15 +77,36 @@ class TrackerStream:
         p, q = stream.sample(t_render)                      # render loop
     """
 
-    #: the current state (settable: the stream continues from the given state)
-    state: TrackerState
-
     def __init__(self, config: TrackerConfig | None = None, t: float = 0.0, dtype=jnp.float32):
-        self.config = TrackerConfig() if config is None else config
-        self.state = tracker_init(self.config, t, dtype)
+        config = TrackerConfig() if config is None else config
+        state = tracker_init(config, t, dtype)
         #: the floating dtype of the state
-        self.dtype = self.state.segment.start.dtype
-        self._config = tracker_config_arrays(self.config, self.dtype)
+        self.dtype = state.segment.start.dtype
+        self._state_def = jax.tree.structure(state)
+        self._segment_def = jax.tree.structure(state.segment)
+        self._n_filter = len(jax.tree.leaves(state.filter))  # the segment's leaves follow
+        self.set_config(config)
+        self.state = state
+
+    def set_config(self, config: TrackerConfig) -> None:
+        """Use another config (one of the same structure does not recompile)."""
+        leaves, config_def = jax.tree.flatten(tracker_config_arrays(config, self.dtype))
+        self._update = _on_leaves(_update, config_def, self._state_def)
+        self._config_def = config_def
+        self._config_leaves = leaves
+        self.config = config
+
+    @property
+    def state(self) -> TrackerState:
+        """The current :class:`phjax.TrackerState` (settable: the stream continues from it)."""
+        return jax.tree.unflatten(self._state_def, self._leaves)
+
+    @state.setter
+    def state(self, value: TrackerState) -> None:
+        leaves, treedef = jax.tree.flatten(value)
+        if treedef != self._state_def:
+            raise ValueError("state: not a TrackerState of this stream's filter and structure")
+        self._leaves = leaves
 
     def update(self, t: Float[ArrayLike, ""], position: Float[ArrayLike, "3"],
                quaternion: Float[ArrayLike, "4"]) -> None:
@@ -71,7 +117,7 @@ class TrackerStream:
             position: measured position, m (NaN if missing).
             quaternion: measured orientation wxyz (NaN if missing; sign irrelevant).
         """
-        self.state = tracker_update(self._config, self.state, t, position, quaternion)
+        self._leaves = self._update(self._config_leaves, self._leaves, t, position, quaternion)
 
     def sample(self, t_render: Float[ArrayLike, "*T"]) -> tuple[Float[Array, "*T 3"], Float[Array, "*T 4"]]:
         """Rendered pose at render time(s) ``t_render`` (as :func:`phjax.tracker_sample`).
@@ -79,4 +125,4 @@ class TrackerStream:
         Returns:
             ``(position (*T, 3), quaternion (*T, 4))``; NaN before the first valid measurement.
         """
-        return tracker_sample(self._config, self.state, t_render)
+        return _sample_on_leaves(self._segment_def)(self._leaves[self._n_filter:], t_render)

@@ -31,8 +31,9 @@ def _comparable(state, exact: bool):
 def test_stream_equals_pure_functions(meas, dtype, model):
     """Every update and the samples between frames equal tracker_update / tracker_sample.
 
-    The stream calls ``tracker_update`` / ``tracker_sample`` with its config converted to
-    arrays: this checks the wrapper (dtypes, no recompilation), not the tracker; the maths is
+    The stream runs the same code (``_update``, ``RenderSegment.evaluate``) on the leaves of
+    its config and state: this checks the wrapper (dtypes, no recompilation), not the tracker;
+    the maths is
     tested independently in tests/tracking/test_tracker.py (finite-difference continuity of the
     world-frame velocities, segment starts, accuracy against ground truth and the Kalman
     baseline) and tests/tracking/test_kalman.py (filterpy)."""
@@ -47,8 +48,8 @@ def test_stream_equals_pure_functions(meas, dtype, model):
     for k in range(40):
         s.update(float(mt[k]), mp[k], mq[k])
         ref = pj.tracker_update(cfg, ref, mt[k], mp[k], mq[k])
-        if k == 0:  # both signatures compiled (the stream's config is converted to arrays)
-            n0 = fn._cache_size()
+        if k == 0:  # compiled for the argument types of the loop
+            n0 = fn._cache_size(), s._update._cache_size()
         for a, b in zip(jax.tree.leaves(s.state), jax.tree.leaves(ref)):
             assert a.dtype == b.dtype and a.shape == b.shape
         exact = dtype == jnp.float64
@@ -63,7 +64,7 @@ def test_stream_equals_pure_functions(meas, dtype, model):
         np.testing.assert_allclose(np.asarray(Q), np.asarray(Qr), rtol=tol, atol=tol)
         assert np.all(np.isfinite(np.asarray(P))) and np.all(np.isfinite(np.asarray(Q)))
     # static shapes: no compilation after the first frame (Python-float times, NumPy measurements)
-    assert fn._cache_size() == n0
+    assert (fn._cache_size(), s._update._cache_size()) == n0
 
 
 def test_stream_config_arrays_and_state_round_trip(meas):
@@ -73,8 +74,7 @@ def test_stream_config_arrays_and_state_round_trip(meas):
     cfg = pj.TrackerConfig()
     s = pj.TrackerStream(cfg, dtype=jnp.float64)
     assert s.dtype == jnp.float64
-    assert all(isinstance(x, jax.Array) and x.dtype == jnp.float64
-               for x in jax.tree.leaves(s._config))
+    assert all(isinstance(x, jax.Array) and x.dtype == jnp.float64 for x in s._config_leaves)
     assert not bool(s.state.started) and s.state.started.dtype == jnp.bool_
     assert s.state.filter.initialized.dtype == jnp.bool_
     s.update(0.0, mp[0], mq[0])
