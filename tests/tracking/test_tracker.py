@@ -358,39 +358,37 @@ def test_gradient_through_track_wrt_config(head):
 
 def test_head_at_rest_values_and_gradients_finite():
     """A head at rest: every angular velocity is exactly zero (rotation increments of the
-    curves, coasting rotation), where ``|w|`` has no derivative. Samples inside both pieces,
-    while coasting and after stopping, their velocities (used by the next update) and the
-    gradients of an update and its samples with respect to the config, the previous state
-    (its render segment included) and the measurement stay finite."""
+    curves, coasting rotation), where ``|w|`` has no derivative. The rendered pose and its
+    velocities (what the next update starts from) inside both pieces, while coasting and
+    after stopping, and their gradients with respect to the render segment stay finite."""
     import equinox as eqx
 
-    cfg = pj.tracker_config_arrays(pj.TrackerConfig(imm=None), jnp.float64)
+    cfg = pj.TrackerConfig(imm=None)
     p0 = jnp.asarray([0.1, -0.2, 0.5])
     q0 = jnp.asarray([1.0, 0.0, 0.0, 0.0])
     taus = 2 / 30 + jnp.asarray([0.0, 0.005, 0.02, 0.1, 0.2, 1.0])
     st = pj.tracker_init(cfg, 0.0, jnp.float64)
-    for k in range(2):
+    for k in range(3):
         st = pj.tracker_update(cfg, st, k / 30, p0, q0)
-    np.testing.assert_array_equal(np.asarray(st.rotation.w1), 0.0)  # really at rest
-    np.testing.assert_array_equal(np.asarray(st.segment.w_end), 0.0)
-    _, v, _, w = jax.vmap(st.segment.evaluate)(taus)
-    assert np.all(np.isfinite(np.asarray(v))) and np.all(np.isfinite(np.asarray(w)))
+    seg = st.segment
+    np.testing.assert_array_equal(np.asarray(seg.rotation.w1), 0.0)  # really at rest
+    np.testing.assert_array_equal(np.asarray(seg.w_end), 0.0)
 
-    def loss(args):
-        cfg, st, p, q = args
-        P, Q = pj.tracker_sample(cfg, pj.tracker_update(cfg, st, 2 / 30, p, q), taus)
-        return jnp.sum(P) + jnp.sum(Q * jnp.arange(4.0)), (P, Q)
+    @eqx.filter_jit
+    def loss(seg):
+        p, v, q, w = jax.vmap(seg.evaluate)(taus)
+        return jnp.sum(p) + jnp.sum(v) + jnp.sum(q * jnp.arange(4.0)) + jnp.sum(w), (p, q)
 
-    (_, (P, Q)), g = eqx.filter_value_and_grad(loss, has_aux=True)((cfg, st, p0, q0))
+    (_, (P, Q)), g = eqx.filter_value_and_grad(loss, has_aux=True)(seg)
     np.testing.assert_allclose(np.asarray(P), np.broadcast_to(p0, P.shape), atol=1e-12)
     np.testing.assert_allclose(np.abs(np.asarray(Q)[:, 0]), 1.0, atol=1e-12)
     leaves = jax.tree.leaves(g)
-    assert len(leaves) > 20
+    assert len(leaves) >= 15
     for x in leaves:
         assert np.all(np.isfinite(np.asarray(x)))
-    # the render segment and the measurement do get gradients (not all zero)
-    assert np.abs(np.asarray(g[1].segment.curve.control_points)).max() > 0
-    assert np.abs(np.asarray(g[2])).max() > 0
+    # the rotation increments and the coasting angular velocity do get gradients
+    assert np.abs(np.asarray(g.rotation.w2)).max() > 0
+    assert np.abs(np.asarray(g.w_end)).max() > 0
 
 
 def test_float32_stream_close_to_float64(head):
