@@ -7,7 +7,7 @@ Two threads share one :class:`phjax.tracking.TrackerStream`:
   delay the next deadline; deadlines missed by a whole period are skipped and counted) it
   samples the stream at ``t_k`` and sends the pose to every output.
 
-The threads only exchange the stream's packed state (replaced atomically by an update) and a
+The threads only exchange the stream's state (replaced atomically by an update) and a
 few numbers, so a slow or failed frame is a late or missing measurement and never stalls the
 render loop.
 
@@ -60,8 +60,13 @@ import numpy as np
 
 from .._np_quat import np_qconj, np_qmul
 from ..tracking.kalman import KalmanConfig
-from ..tracking.stream import TrackerStream, _Layout
-from ..tracking.tracker import TrackerConfig, _filter_predict, _filter_step, tracker_update
+from ..tracking.stream import TrackerStream, _on_leaves
+from ..tracking.tracker import (
+    TrackerConfig,
+    _filter_predict,
+    _filter_step,
+    tracker_update,
+)
 from ._clock import RealClock, VirtualClock
 from ._outputs import Output, TumLog, open_output
 from ._sources import Measurement, Source, open_source
@@ -87,24 +92,6 @@ def _late_update(config: TrackerConfig, state, t_meas, t_now, position, quaterni
     return choose(fresh | used, out, seeded)
 
 
-_COMPILED_LATE: dict = {}
-
-
-def _compiled_late(config_layout: _Layout, state_layout: _Layout):
-    key = (config_layout.treedef, tuple(config_layout.meta), config_layout.dtype,
-           state_layout.treedef, tuple(state_layout.meta), state_layout.groups, state_layout.dtype)
-    fn = _COMPILED_LATE.get(key)
-    if fn is None:
-        def packed(cvec, svecs, t_meas, t_now, position, quaternion):
-            config = config_layout.unpack(cvec)
-            state = state_layout.unpack(svecs)
-            return state_layout.pack(_late_update(config, state, t_meas, t_now, position,
-                                                  quaternion))
-
-        fn = _COMPILED_LATE[key] = jax.jit(packed)
-    return fn
-
-
 class LiveStream(TrackerStream):
     """:class:`phjax.tracking.TrackerStream` with late measurements and a settable config.
 
@@ -115,13 +102,12 @@ class LiveStream(TrackerStream):
         if dtype is None:
             dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
         super().__init__(config, t, dtype)
-        self._dtype = np.dtype(self._layout.dtype).type
-        self._late = _compiled_late(self._config_layout, self._layout)
+        self._dtype = np.dtype(self.dtype).type
 
     def set_config(self, config: TrackerConfig) -> None:
         """Use another config of the same structure (no recompilation)."""
-        self._cvec = self._config_layout.pack(config)
-        self.config = config
+        super().set_config(config)
+        self._late = _on_leaves(_late_update, self._config_def, self._state_def)
 
     def update_late(self, t_measured: float, t_now: float, position, quaternion) -> None:
         """Feed a measurement taken at ``t_measured`` that arrives at ``t_now`` (module docs).
@@ -132,7 +118,7 @@ class LiveStream(TrackerStream):
             position: ``(3,)`` m, NaN if missing; quaternion: ``(4,)`` ``wxyz``, NaN if missing.
         """
         dt = self._dtype
-        self._packed = self._late(self._cvec, self._packed, dt(t_measured), dt(t_now),
+        self._leaves = self._late(self._config_leaves, self._leaves, dt(t_measured), dt(t_now),
                                   np.asarray(position, dt), np.asarray(quaternion, dt))
 
 

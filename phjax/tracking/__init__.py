@@ -53,6 +53,7 @@ from .models import ConstantAcceleration, ConstantVelocity
 from .noise import MeasurementNoise, estimate_measurement_noise, with_measurement_noise
 from .stream import TrackerStream
 from .tracker import (
+    RenderSegment,
     TrackerConfig,
     TrackerState,
     reconstruct,
@@ -89,6 +90,7 @@ __all__ = [
     "TUNED",
     "TrackerConfig",
     "TrackerState",
+    "RenderSegment",
     "TrackerStream",
     "TuningResult",
     "cubic_spline",

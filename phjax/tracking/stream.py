@@ -1,129 +1,68 @@
-"""A real-time driver of the streaming tracker: lowest-latency camera updates and render samples.
+"""A real-time driver of the streaming tracker: a stateful object for host-side render loops.
 
 :func:`phjax.tracker_update` and :func:`phjax.tracker_sample` are pure functions over
 :class:`phjax.TrackerConfig` / :class:`phjax.TrackerState` PyTrees; that is the form for
-``jit``, ``vmap``, ``grad`` and ``lax.scan``. In a render loop that calls them from Python,
-most of a call's cost is not the arithmetic but crossing the jit boundary: flattening the
-equinox config and state (Python code, run on every call) and handing each of their ~22 leaves
-to XLA. :class:`TrackerStream` holds the same state packed into six vectors of at most 64
-elements and the config in one vector, and calls one compiled function on those arrays, so a
-camera update costs the arithmetic plus a handful of buffers. The results are those of
-:func:`phjax.tracker_update` / :func:`phjax.tracker_sample` (same code, same compiled
-arithmetic): ``stream.state`` gives the :class:`TrackerState` at any time.
+``jit``, ``vmap``, ``grad`` and ``lax.scan``. :class:`TrackerStream` holds the current state
+and the config (converted once to device arrays of the state's dtype, see
+:func:`phjax.tracker_config_arrays`) as flat lists of their leaves and calls the same update
+and sample code jitted on those lists, so its results are theirs without flattening the nested
+modules in Python on every call; ``stream.state`` gives or replaces the :class:`TrackerState`
+at any time.
 
-Why at most 64 elements per vector: XLA's CPU runtime runs the kernels of a call one after the
-other in the calling thread only when every buffer has at most 512 bytes (64 float64 values);
-larger buffers send the kernels to its thread pool, which costs microseconds each (see
-:class:`phjax.TrackerState`).
+For the lowest latency on a CPU turn off JAX's asynchronous dispatch at program start
+(``jax.config.update("jax_cpu_enable_async_dispatch", False)``); ``benchmarks/bench_tracker.py``
+measures both settings against the targets (update <= 200 us, sample <= 20 us).
 
-For the lowest latency on a CPU also turn off JAX's asynchronous dispatch at program start
-(``jax.config.update("jax_cpu_enable_async_dispatch", False)``; ``benchmarks/bench_tracker.py``
-measures both).
-
-This is a stateful Python object for the host-side render loop; inside ``jit`` / ``scan`` use
-the pure functions (``phjax.track`` is the whole-recording scan).
+Inside ``jit`` / ``scan`` use the pure functions (``phjax.track`` is the whole-recording scan).
 """
 
 from __future__ import annotations
 
-import math
+import functools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .tracker import TrackerConfig, TrackerState, _sample_render, _update, tracker_init
+from .tracker import (
+    TrackerConfig,
+    TrackerState,
+    _sample,
+    _update,
+    tracker_config_arrays,
+    tracker_init,
+)
 
 __all__ = ["TrackerStream"]
 
-#: largest number of elements of one packed vector (512 bytes of float64)
-_CHUNK = 64
+
+@functools.cache
+def _on_leaves(fn, config_def, state_def):
+    """``jit(fn)`` on the flat leaf lists of a config and a state of the given structures,
+    returning the new state's leaves: the stream keeps its PyTrees flattened, so a call does not
+    flatten and rebuild the nested equinox modules in Python (about a quarter of an update's
+    time on a CPU, see ``benchmarks/README.md``)."""
+    def on_leaves(config_leaves, state_leaves, *args):
+        config = jax.tree.unflatten(config_def, config_leaves)
+        state = jax.tree.unflatten(state_def, state_leaves)
+        return jax.tree.leaves(fn(config, state, *args))
+
+    return jax.jit(on_leaves)
 
 
-class _Layout:
-    """How a PyTree of arrays is packed into a few flat vectors of one float dtype.
-
-    Consecutive leaves share a vector while it stays within ``_CHUNK`` elements (a larger leaf
-    gets a vector of its own); leaves listed in ``alone`` always get their own vector, so that
-    they can be passed on without unpacking. Floating leaves come back in the packed dtype;
-    boolean and integer leaves round-trip exactly (stored as 0/1 and small integers).
-    """
-
-    def __init__(self, tree, dtype, alone=()):
-        leaves, self.treedef = jax.tree.flatten(tree)
-        self.dtype = jnp.dtype(dtype)
-        self.meta = tuple((tuple(np.shape(x)), jnp.asarray(x).dtype) for x in leaves)
-        alone_ids = {id(x) for x in alone}
-        groups, open_size = [], None  # open_size: elements of the last vector, None: closed
-        for i, (x, (shape, _)) in enumerate(zip(leaves, self.meta)):
-            n = math.prod(shape)
-            if id(x) in alone_ids:
-                groups.append((i,))
-                open_size = None
-            elif open_size is not None and open_size + n <= _CHUNK:
-                groups[-1] += (i,)
-                open_size += n
-            else:
-                groups.append((i,))
-                open_size = n
-        self.groups = tuple(groups)
-
-    def pack(self, tree) -> tuple[Array, ...]:
-        leaves = jax.tree.leaves(tree)
-        return tuple(
-            jnp.concatenate([jnp.ravel(jnp.asarray(leaves[i])).astype(self.dtype) for i in g])
-            if len(g) > 1 else jnp.ravel(jnp.asarray(leaves[g[0]])).astype(self.dtype)
-            for g in self.groups)
-
-    def unpack(self, vectors):
-        leaves = [None] * len(self.meta)
-        for g, v in zip(self.groups, vectors):
-            off = 0
-            for i in g:
-                shape, dt = self.meta[i]
-                n = math.prod(shape)
-                x = v[off:off + n].reshape(shape)
-                off += n
-                if dt == jnp.bool_:
-                    x = x > 0
-                elif jnp.issubdtype(dt, jnp.integer):
-                    x = jnp.round(x).astype(dt)
-                leaves[i] = x  # floating leaves keep the packed dtype
-        return jax.tree.unflatten(self.treedef, leaves)
-
-    def position(self, leaf_index: int) -> int:
-        """Index of the vector that holds leaf ``leaf_index`` (alone)."""
-        for k, g in enumerate(self.groups):
-            if g == (leaf_index,):
-                return k
-        raise ValueError(f"leaf {leaf_index} does not have a vector of its own")
-
-
-#: compiled packed updates, one per (config layout, state layout) signature
-_COMPILED: dict = {}
-
-
-def _compiled_update(config_layout: _Layout, state_layout: _Layout):
-    key = (config_layout.treedef, tuple(config_layout.meta), config_layout.dtype,
-           state_layout.treedef, tuple(state_layout.meta), state_layout.groups, state_layout.dtype)
-    fn = _COMPILED.get(key)
-    if fn is None:
-        def packed_update(cvec, svecs, t, position, quaternion):
-            config = config_layout.unpack(cvec)
-            state = state_layout.unpack(svecs)
-            return state_layout.pack(_update(config, state, t, position, quaternion))
-
-        fn = _COMPILED[key] = jax.jit(packed_update)
-    return fn
+@functools.cache
+def _sample_on_leaves(segment_def):
+    """``jit(_sample)`` on the flat leaf list of a render segment."""
+    return jax.jit(lambda leaves, t: _sample(jax.tree.unflatten(segment_def, leaves), t))
 
 
 class TrackerStream:
     """Stateful real-time driver of the streaming tracker (host-side render loops).
 
     ``update`` feeds a camera-rate measurement (:func:`phjax.tracker_update`), ``sample``
-    renders (:func:`phjax.tracker_sample`); both call one compiled function on packed arrays
-    (see the module docs). Shapes are static: nothing recompiles per frame.
+    renders (:func:`phjax.tracker_sample`), with the same results. Shapes are static: nothing
+    recompiles per frame. The state is replaced atomically by an update, so a capture thread
+    may update while a render thread samples.
 
     Arguments:
         config: tracker configuration (default :class:`phjax.TrackerConfig()`).
@@ -139,26 +78,35 @@ class TrackerStream:
     """
 
     def __init__(self, config: TrackerConfig | None = None, t: float = 0.0, dtype=jnp.float32):
-        self.config = TrackerConfig() if config is None else config
-        state = tracker_init(self.config, t, dtype)
-        dtype = state.render[2].dtype
-        self._config_layout = _Layout(self.config, dtype)
-        self._cvec = self._config_layout.pack(self.config)
-        self._layout = _Layout(state, dtype, alone=state.render)
-        leaves = jax.tree.leaves(state)
-        ids = [next(i for i, x in enumerate(leaves) if x is r) for r in state.render]
-        self._render_at = tuple(self._layout.position(i) for i in ids)
-        self._packed = self._layout.pack(state)
-        self._update = _compiled_update(self._config_layout, self._layout)
+        config = TrackerConfig() if config is None else config
+        state = tracker_init(config, t, dtype)
+        #: the floating dtype of the state
+        self.dtype = state.segment.start.dtype
+        self._state_def = jax.tree.structure(state)
+        self._segment_def = jax.tree.structure(state.segment)
+        self._n_filter = len(jax.tree.leaves(state.filter))  # the segment's leaves follow
+        self.set_config(config)
+        self.state = state
+
+    def set_config(self, config: TrackerConfig) -> None:
+        """Use another config (one of the same structure does not recompile)."""
+        leaves, config_def = jax.tree.flatten(tracker_config_arrays(config, self.dtype))
+        self._update = _on_leaves(_update, config_def, self._state_def)
+        self._config_def = config_def
+        self._config_leaves = leaves
+        self.config = config
 
     @property
     def state(self) -> TrackerState:
-        """The current :class:`phjax.TrackerState` (unpacked copy)."""
-        return self._layout.unpack(self._packed)
+        """The current :class:`phjax.TrackerState` (settable: the stream continues from it)."""
+        return jax.tree.unflatten(self._state_def, self._leaves)
 
     @state.setter
     def state(self, value: TrackerState) -> None:
-        self._packed = self._layout.pack(value)
+        leaves, treedef = jax.tree.flatten(value)
+        if treedef != self._state_def:
+            raise ValueError("state: not a TrackerState of this stream's filter and structure")
+        self._leaves = leaves
 
     def update(self, t: Float[ArrayLike, ""], position: Float[ArrayLike, "3"],
                quaternion: Float[ArrayLike, "4"]) -> None:
@@ -169,7 +117,7 @@ class TrackerStream:
             position: measured position, m (NaN if missing).
             quaternion: measured orientation wxyz (NaN if missing; sign irrelevant).
         """
-        self._packed = self._update(self._cvec, self._packed, t, position, quaternion)
+        self._leaves = self._update(self._config_leaves, self._leaves, t, position, quaternion)
 
     def sample(self, t_render: Float[ArrayLike, "*T"]) -> tuple[Float[Array, "*T 3"], Float[Array, "*T 4"]]:
         """Rendered pose at render time(s) ``t_render`` (as :func:`phjax.tracker_sample`).
@@ -177,5 +125,4 @@ class TrackerStream:
         Returns:
             ``(position (*T, 3), quaternion (*T, 4))``; NaN before the first valid measurement.
         """
-        packed = self._packed
-        return _sample_render(tuple(packed[i] for i in self._render_at), t_render)
+        return _sample_on_leaves(self._segment_def)(self._leaves[self._n_filter:], t_render)

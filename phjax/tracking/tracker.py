@@ -23,9 +23,9 @@ smooth pose at any render time:
 
 Streaming API (jitted, static shapes, no recompilation per frame): :func:`tracker_init`,
 :func:`tracker_update` at camera rate, :func:`tracker_sample` at render rate. A host-side render
-loop gets the lowest latency from :class:`phjax.TrackerStream` (the same update on a packed
-state: few buffers cross the jit boundary) and, on a CPU, with JAX's asynchronous dispatch
-turned off at program start (``jax.config.update("jax_cpu_enable_async_dispatch", False)``):
+loop can use :class:`phjax.TrackerStream` (a thin stateful wrapper of these two functions)
+and, on a CPU, gets the lowest latency with JAX's asynchronous dispatch turned off at program
+start (``jax.config.update("jax_cpu_enable_async_dispatch", False)``):
 for calls this short the hand-off to a worker thread costs more than the computation (see
 ``benchmarks/bench_tracker.py``). Calling the pure functions directly, pass a config converted
 once with :func:`tracker_config_arrays`.
@@ -73,6 +73,7 @@ from ..quaternion import (
 __all__ = [
     "TrackerConfig",
     "TrackerState",
+    "RenderSegment",
     "tracker_init",
     "tracker_config_arrays",
     "tracker_update",
@@ -124,26 +125,81 @@ _SETTLE = 0.2
 _KNOT = 0.4
 
 
+class RenderSegment(eqx.Module):
+    """Everything a render sample needs: the current segment and how to coast past its end.
+
+    Fields:
+        started: whether a valid measurement has been seen (before that samples are NaN).
+        start: ``(2,)`` start times of the segment's two pieces, s.
+        curve: the two position pieces, a :class:`PHQuintic` batch of 2, each on its own
+            parameter ``s = (t - start) / duration``.
+        rotation: the two orientation pieces, a :class:`QuaternionHermite` batch of 2 (its
+            ``duration`` field holds the pieces' durations, s).
+        p_end, v_end, q_end, w_end: end pose and velocities of the second piece (``q_end`` with
+            the sign of its ``rotation(1)``); past the end the pose coasts from them.
+        coast_time, stop_time: the coasting parameters of the config of the last update, s.
+    """
+
+    started: Bool[Array, ""]
+    start: Float[Array, "2"]
+    curve: PHQuintic
+    rotation: QuaternionHermite
+    p_end: Float[Array, "3"]
+    v_end: Float[Array, "3"]
+    q_end: Float[Array, "4"]
+    w_end: Float[Array, "3"]
+    coast_time: Float[Array, ""]
+    stop_time: Float[Array, ""]
+
+    @property
+    def end(self) -> Float[Array, ""]:
+        """End time of the segment (of its second piece), s."""
+        return self.start[1] + self.rotation.duration[1]
+
+    def evaluate(self, tau: Float[ArrayLike, ""], velocities: bool = True):
+        """Rendered pose at one time ``tau >=`` the segment start.
+
+        Inside the segment the piece that covers ``tau`` (the second from its start on) is
+        evaluated; past the end the pose moves with the end velocities for ``coast_time``, then
+        the velocities decay with time constant ``stop_time`` (C1), so the pose comes to rest.
+
+        Arguments:
+            tau: render time, s (a scalar; ``jax.vmap`` for several).
+            velocities: also return the velocities (else ``None`` in their places).
+
+        Returns:
+            ``(position (3,), velocity (3,), quaternion (4,), angular velocity (3,))``, the
+            angular velocity in the world frame, rad/s; NaN before the first valid measurement.
+        """
+        dtype = self.start.dtype
+        tau = jnp.asarray(tau, dtype)
+        i = (tau >= self.start[1]).astype(jnp.int32)
+        curve = jax.tree.map(lambda x: x[i], self.curve)
+        rotation = jax.tree.map(lambda x: x[i], self.rotation)
+        s = jnp.clip((tau - self.start[i]) / rotation.duration, 0, 1)
+        # past the end: coast, then come to rest smoothly
+        delta = jnp.maximum(tau - self.end, 0)
+        decay = jnp.exp(-jnp.maximum(delta - self.coast_time, 0) / self.stop_time)
+        disp = jnp.minimum(delta, self.coast_time) + self.stop_time * (1 - decay)
+        inside = tau <= self.end
+        nan = jnp.where(self.started, 0.0, jnp.nan).astype(dtype)
+        p = jnp.where(inside, curve.position(s), self.p_end + disp * self.v_end) + nan
+        q_coast = quat_mul(quat_from_rotvec(disp * self.w_end), self.q_end)
+        q = jnp.where(inside, rotation.rotation(s), q_coast) + nan
+        if not velocities:
+            return p, None, q, None
+        factor = jnp.where(delta > self.coast_time, decay, 1.0)
+        v = jnp.where(inside, curve.hodograph(s) / rotation.duration, factor * self.v_end) + nan
+        w = jnp.where(inside, rotation.angular_velocity(s), factor * self.w_end) + nan
+        return p, v, q, w
+
+
 class TrackerState(eqx.Module):
     """State of the streaming tracker (a PyTree of arrays).
 
     Fields:
-        filter: the Kalman filter state.
-        render: everything a render sample needs, packed in three vectors (layouts ``_P``,
-            ``_P``, ``_R``): per piece of the current segment its start, end, duration and
-            reciprocal duration, the power basis of its position curve and its rotation curve
-            with the norms and reciprocal norms of the increments; then ``started``, the end
-            pose and velocities and the coasting parameters of the config of the last update.
-            :func:`tracker_sample` passes these to a kernel of a few fused operations.
-        shape: the PH form of the two position pieces, ``(2, 30)`` (layout ``_C``: quaternion
-            coefficients ``A0, A1, A2`` and Bezier control points).
-
-    The state is split into arrays of at most 64 elements on purpose: XLA's CPU runtime runs
-    the kernels of a compiled function one after the other in the calling thread only when
-    every buffer it touches has at most 512 bytes, and otherwise hands them to its thread pool,
-    which costs several microseconds per kernel (measured: 11 small additions take 21 us
-    sequentially, 87 us once one operand has 129 floats). Few arrays still cross the jit
-    boundary (each output costs about 1.4 us).
+        filter: the Kalman (or IMM) filter state.
+        segment: the render segment (:class:`RenderSegment`): all a render sample reads.
 
     Properties (views): ``t0``, the time of the last segment start (the last camera frame
     used), s; ``started``, whether a valid measurement has been seen (before that samples are
@@ -154,96 +210,43 @@ class TrackerState(eqx.Module):
     """
 
     filter: KalmanState
-    render: tuple[Float[Array, " P"], Float[Array, " P"], Float[Array, " R"]]
-    shape: Float[Array, "2 30"]
-
-    def _field(self, name):
-        a, b = _P[name]
-        return jnp.stack([self.render[0][a:b], self.render[1][a:b]])
+    segment: RenderSegment
 
     @property
     def t0(self) -> Float[Array, ""]:
-        return self.render[0][_P["t0"][0]]
+        return self.segment.start[0]
 
     @property
     def started(self) -> Bool[Array, ""]:
-        return self.render[2][_R["started"][0]] > 0
+        return self.segment.started
 
     @property
     def duration(self) -> Float[Array, "2"]:
-        return self._field("dur")[:, 0]
+        return self.segment.rotation.duration
 
     @property
     def curve(self) -> PHQuintic:
-        f = {k: self.shape[:, a:b] for k, (a, b) in _C.items()}
-        return PHQuintic(A0=f["A0"], A1=f["A1"], A2=f["A2"], control_points=f["cp"].reshape(2, 6, 3))
+        return self.segment.curve
 
     @property
     def rotation(self) -> QuaternionHermite:
-        f = self._field
-        return QuaternionHermite(q0=f("q0"), w1=f("w1"), w2=f("w2"), w3=f("w3"), duration=self.duration)
-
-
-# layout of TrackerState.render: one block per piece, then the common part. The per-piece
-# constants are precomputed at update time so that a sample costs few XLA ops: the reciprocal
-# of the duration and, for each exponential of the rotation curve ``exp(b w)`` (``b >= 0``),
-# the norm ``n = |w|`` and ``1/n`` (0 at 0), so that ``exp(b w) = (cos(b n), sin(b n)/n w)``
-# needs one sin/cos of a small vector and no division.
-_PIECE_LAYOUT = (("t0", 1), ("t_end", 1), ("dur", 1), ("inv_dur", 1), ("coef", 18), ("q0", 4),
-                 ("w1", 3), ("w2", 3), ("w3", 3), ("n", 3), ("inv_n", 3))
-_COMMON_LAYOUT = (("started", 1), ("p_end", 3), ("v_end", 3), ("q_end", 4), ("w_end", 3),
-                  ("n_end", 1), ("inv_n_end", 1), ("coast", 1), ("stop", 1), ("inv_stop", 1))
-_CURVE_LAYOUT = (("A0", 4), ("A1", 4), ("A2", 4), ("cp", 18))
-
-
-def _offsets(layout):
-    """``{name: (start, stop)}`` of the fields of a packed layout."""
-    out, off = {}, 0
-    for name, n in layout:
-        out[name] = (off, off + n)
-        off += n
-    return out
-
-
-_P = _offsets(_PIECE_LAYOUT)
-_R = _offsets(_COMMON_LAYOUT)
-_C = _offsets(_CURVE_LAYOUT)
-
-
-def _vnorm_inv(v):
-    """``(|v|, 1/|v|)`` of 3-vectors (``1/|v| = 0`` at 0), finite gradients at 0."""
-    n2 = v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2]
-    pos = n2 > 0
-    n = jnp.where(pos, jnp.sqrt(jnp.where(pos, n2, 1)), 0)
-    return n, jnp.where(pos, 1 / jnp.where(pos, n, 1), 0)
+        return self.segment.rotation
 
 
 def _make_state(config, kf, t0, duration, curve, rotation, started, ends) -> TrackerState:
-    """A :class:`TrackerState` with the packed render vectors of its two pieces.
+    """A :class:`TrackerState` whose segment starts at ``t0`` with two pieces.
 
     ``ends = (p_end, v_end, q_end, w_end)``: the end pose and velocities of the second piece,
     i.e. the Hermite data it was built from (``q_end`` with the sign of its ``rotation(1)``).
     """
-    p_end, v_end, q_end, w_end = ends
     dtype = t0.dtype
-    starts = (t0, t0 + duration[0])
-    w_all = jnp.stack([rotation.w1, rotation.w2, rotation.w3], axis=1)  # (2, 3, 3)
-    n, inv_n = _vnorm_inv(w_all)
-    coef = curve._power(0)  # (2, 6, 3)
-
-    def piece(i):  # built per piece: no temporary beyond 64 elements (see TrackerState)
-        return jnp.concatenate([jnp.stack([starts[i], starts[i] + duration[i], duration[i],
-                                           1 / duration[i]]), coef[i].reshape(18),
-                                rotation.q0[i], w_all[i].reshape(9), n[i], inv_n[i]])
-
-    n_end, inv_n_end = _vnorm_inv(w_end)
-    stop = jnp.asarray(config.stop_time, dtype)
-    parts = [started.astype(dtype)[None], p_end, v_end, q_end, w_end, (n_end / 2)[None],
-             inv_n_end[None], jnp.asarray(config.coast_time, dtype)[None], stop[None],
-             (1 / stop)[None]]
-    common = jnp.concatenate([jnp.asarray(x, dtype) for x in parts])
-    shape = jnp.concatenate([curve.A0, curve.A1, curve.A2, curve.control_points.reshape(2, 18)], -1)
-    return TrackerState(kf, (piece(0), piece(1), common), shape)
+    p_end, v_end, q_end, w_end = ends
+    segment = RenderSegment(
+        started=jnp.asarray(started), start=jnp.stack([t0, t0 + duration[0]]), curve=curve,
+        rotation=rotation, p_end=p_end, v_end=v_end, q_end=q_end, w_end=w_end,
+        coast_time=jnp.asarray(config.coast_time, dtype),
+        stop_time=jnp.asarray(config.stop_time, dtype))
+    return TrackerState(kf, segment)
 
 
 def _segment(p0, v0, q0, w0, p1, v1, q1, w1, duration):
@@ -308,107 +311,14 @@ def tracker_config_arrays(config: TrackerConfig | None = None, dtype=None) -> Tr
     return jax.tree.map(lambda x: jnp.asarray(x, dtype), config)
 
 
-def _evaluate(config: TrackerConfig, state: TrackerState, tau, velocities: bool = True):
-    """Rendered position, velocity, orientation, angular velocity at time(s) ``tau``
-    (velocities are ``None`` when not requested)."""
-    return _eval_render(state.render, tau, velocities)
+def _sample(segment: RenderSegment, t_render):
+    """Pose of ``segment`` at render times of any shape (NaN before the first measurement)."""
+    tau = jnp.asarray(t_render, segment.start.dtype)
+    p, _, q, _ = jax.vmap(lambda x: segment.evaluate(x, velocities=False))(tau.reshape(-1))
+    return p.reshape(tau.shape + (3,)), q.reshape(tau.shape + (4,))
 
 
-def _qmul_c(a, b):
-    """Hamilton product on component tuples ``(w, x, y, z)`` (same association as quat_mul)."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    w = aw * bw - (ax * bx + ay * by + az * bz)
-    x = aw * bx + bw * ax + (ay * bz - az * by)
-    y = aw * by + bw * ay + (az * bx - ax * bz)
-    z = aw * bz + bw * az + (ax * by - ay * bx)
-    return w, x, y, z
-
-
-def _rotate_c(q, v):
-    """Vector part of ``q v q*`` for a unit quaternion and a vector, on component tuples."""
-    w, ux, uy, uz = q
-    vx, vy, vz = v
-    tx, ty, tz = 2 * (uy * vz - uz * vy), 2 * (uz * vx - ux * vz), 2 * (ux * vy - uy * vx)
-    return (vx + w * tx + (uy * tz - uz * ty), vy + w * ty + (uz * tx - ux * tz),
-            vz + w * tz + (ux * ty - uy * tx))
-
-
-def _eval_render(render, tau, velocities: bool = True):
-    """Pose (and velocities) of the packed render vectors ``(first piece, second piece,
-    common)`` at time(s) ``tau`` (layouts ``_P`` and ``_R``).
-
-    Selects the piece that covers ``tau`` (the second from its start on), then evaluates it
-    on scalar components with the transcendental functions of one sample gathered in one sin,
-    one cos and one exp, so that XLA compiles it to a handful of fused kernels.
-    """
-    first, second, common = render
-    dtype = common.dtype
-    tau = jnp.asarray(tau, dtype)
-    pc = jnp.where((tau >= second[0])[..., None], second, first)  # (*T, piece size)
-    r = {k: common[a:b] for k, (a, b) in _R.items()}
-    g = lambda k, i=0: r[k][i]  # noqa: E731
-    gp = lambda k, i=0: pc[..., _P[k][0] + i]  # noqa: E731
-    t0, inv_dur = gp("t0"), gp("inv_dur")
-    t_end = second[_P["t_end"][0]]
-    coast, stop, inv_stop = g("coast"), g("stop"), g("inv_stop")
-    s = jnp.clip((tau - t0) * inv_dur, 0, 1)
-    # beyond the segment end: coast, then come to rest smoothly
-    delta = jnp.maximum(tau - t_end, 0)
-    decay = jnp.exp(-jnp.maximum(delta - coast, 0) * inv_stop)
-    disp = jnp.minimum(delta, coast) + stop * (1 - decay)
-    inside = tau <= t_end
-    nan = jnp.where(g("started") > 0, 0.0, jnp.nan).astype(dtype)
-    # rotation curve q(s) = exp(b3 w3) exp(b2 w2) exp(b1 w1) q0; coasting exp(w_end disp / 2) q_end
-    cs = 1 - s
-    b = (1 - cs * cs * cs, s * s * (3 - 2 * s), s * s * s)
-    ang = jnp.stack([b[0] * gp("n", 0), b[1] * gp("n", 1), b[2] * gp("n", 2),
-                     disp * g("n_end")], -1)
-    sin, cos = jnp.sin(ang), jnp.cos(ang)
-    ws = [tuple(gp(k, i) for i in range(3)) for k in ("w1", "w2", "w3")]
-    exps = []
-    for j in range(3):
-        k = jnp.where(gp("n", j) > 0, sin[..., j] * gp("inv_n", j), b[j])
-        exps.append((cos[..., j],) + tuple(k * x for x in ws[j]))
-    q_in = tuple(gp("q0", i) for i in range(4))
-    for e in exps:
-        q_in = _qmul_c(e, q_in)
-    w_end = tuple(g("w_end", i) for i in range(3))
-    k_end = jnp.where(g("n_end") > 0, sin[..., 3] * g("inv_n_end"), disp / 2)
-    e_end = (cos[..., 3],) + tuple(k_end * x for x in w_end)
-    q_out = _qmul_c(e_end, tuple(g("q_end", i) for i in range(4)))
-    q = jnp.stack([jnp.where(inside, a, c) + nan for a, c in zip(q_in, q_out)], -1)
-    # position: Horner on the power basis
-    sv = s[..., None]
-    a0 = _P["coef"][0]
-    c = [pc[..., a0 + 3 * j:a0 + 3 * j + 3] for j in range(6)]
-    p_in = c[5]
-    for j in range(4, -1, -1):
-        p_in = p_in * sv + c[j]
-    p_out = r["p_end"] + r["v_end"] * disp[..., None]
-    p = jnp.where(inside[..., None], p_in, p_out) + nan
-    if not velocities:
-        return p, None, q, None
-    v_in = 5 * c[5]
-    for j in range(4, 0, -1):
-        v_in = v_in * sv + j * c[j]
-    factor = jnp.where(delta > coast, decay, 1.0)[..., None]
-    v = jnp.where(inside[..., None], v_in * inv_dur[..., None], r["v_end"] * factor) + nan
-    # world angular velocity: q' q* = d3 w3 + E3 (d2 w2) E3* + E3 E2 (d1 w1) E2* E3* (per unit s)
-    d = (3 * cs * cs, 6 * s * cs, 3 * s * s)
-    e32 = _qmul_c(exps[2], exps[1])
-    om2 = _rotate_c(exps[2], tuple(d[1] * x for x in ws[1]))
-    om1 = _rotate_c(e32, tuple(d[0] * x for x in ws[0]))
-    om = [d[2] * ws[2][i] + om2[i] + om1[i] for i in range(3)]
-    w_in = jnp.stack([2 * x * inv_dur for x in om], -1)
-    w = jnp.where(inside[..., None], w_in, r["w_end"] * factor) + nan
-    return p, v, q, w
-
-
-@jax.jit
-def _sample_render(render, t_render):
-    p, _, q, _ = _eval_render(render, t_render, velocities=False)
-    return p, q
+_sample_render = jax.jit(_sample)
 
 
 def _filter_uninitialized(config: TrackerConfig, t, dtype):
@@ -460,12 +370,12 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion)
     for name, x, shape in (("t", t, ()), ("position", position, (3,)), ("quaternion", quaternion, (4,))):
         if jnp.shape(x) != shape:
             raise ValueError(f"tracker update: {name} must have shape {shape}, got {jnp.shape(x)}")
-    dtype = state.render[2].dtype
+    dtype = state.segment.start.dtype
     t = jnp.maximum(jnp.asarray(t, dtype), state.filter.t)  # late measurements: applied now
     position = jnp.asarray(position, dtype)
     quaternion = jnp.asarray(quaternion, dtype)
     was_init = state.filter.initialized
-    p_r, v_r, q_r, w_r = _eval_render(state.render, t)
+    p_r, v_r, q_r, w_r = state.segment.evaluate(t)
     kf, info = _filter_step(config, state.filter, t, position, quaternion)
     used = info.pos_used | info.rot_used
     h = jnp.asarray(config.horizon, dtype) * _adaptive_factor(config, kf, dtype)
@@ -546,9 +456,8 @@ def tracker_sample(
         ``(position, quaternion)`` with shapes ``(*T, 3)`` and ``(*T, 4)``; NaN before the first
         valid measurement.
     """
-    # one compiled kernel on the packed render vector (few arguments: low dispatch cost)
-    del config  # the coasting parameters were packed at the last update
-    return _sample_render(state.render, t_render)
+    del config  # the coasting parameters in effect are stored in the segment
+    return _sample_render(state.segment, t_render)
 
 
 # ---------------------------------------------------------------------------------- batch API
@@ -633,11 +542,11 @@ def _track_core(config, times, positions, quaternions, render_times):
     def body(state, meas):
         t, p, q = meas
         new = _update(config, state, t, p, q)
-        return new, new.render  # only what a render sample reads is stacked and gathered
+        return new, new.segment  # only what a render sample reads is stacked and gathered
 
-    _, renders = jax.lax.scan(body, state0, (times, positions, quaternions))
-    sel, before = _latest_states(times, renders, render_times)
-    p, _, q, _ = jax.vmap(lambda r, tau: _eval_render(r, tau, velocities=False))(sel, render_times)
+    _, segments = jax.lax.scan(body, state0, (times, positions, quaternions))
+    sel, before = _latest_states(times, segments, render_times)
+    p, _, q, _ = jax.vmap(lambda seg, tau: seg.evaluate(tau, velocities=False))(sel, render_times)
     nan = jnp.where(before, jnp.nan, 0.0)[:, None].astype(dtype)
     return p + nan, q + nan
 

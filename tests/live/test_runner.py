@@ -33,7 +33,7 @@ def test_late_update_is_continuous_and_filters_at_capture_time():
     t, p, q = smooth_motion(40, 30.0, seed=3)
     cfg = live_tracker_config()  # the runner's config: its compiled update is reused below
     late = LiveStream(cfg)
-    plain = TrackerStream(cfg, dtype=late._layout.dtype)
+    plain = TrackerStream(cfg, dtype=late.dtype)
     latency = 0.1
     jumps_late, jumps_plain = [], []
     for i in range(40):

@@ -1,4 +1,4 @@
-"""The real-time driver ``TrackerStream``: same stream as the pure functions, packed state."""
+"""The real-time driver ``TrackerStream``: same stream as the pure functions."""
 
 import jax
 import jax.numpy as jnp
@@ -7,7 +7,6 @@ import pytest
 
 import phjax as pj
 from phjax.motion import simulate
-from phjax.tracking import stream
 from phjax.tracking import tracker
 
 
@@ -21,23 +20,10 @@ def meas():
 
 
 def _comparable(state, exact: bool):
-    """The state leaves to compare. With ``exact`` (float64) all of them, the reciprocal norms
-    of the rotation increments multiplied by the norms (``1/|w|`` of a rounding-sized ``w``
-    differs between two compiled programs; the products, all a sample uses, do not). Otherwise
-    (float32) the filter only: rounding differences of the two programs move the free angles
-    of nearly straight PH pieces and the high power-basis coefficients (the samples below are
-    compared instead)."""
-    def fix(v, layout):
-        v = np.array(v, np.float64)
-        (a, b), (c, d) = layout["n"], layout["inv_n"]
-        v[c:d] = v[c:d] * v[a:b]
-        return v
-
-    if not exact:
-        return jax.tree.leaves(state.filter)
-    pieces = [fix(v, tracker._P) for v in state.render[:2]]
-    R = {"n": tracker._R["n_end"], "inv_n": tracker._R["inv_n_end"]}
-    return jax.tree.leaves(state.filter) + pieces + [fix(state.render[2], R), state.shape]
+    """The state leaves to compare: all of them in float64; in float32 the filter only
+    (rounding differences of the two compiled programs move the free angles of nearly
+    straight PH pieces; the samples below are compared instead)."""
+    return jax.tree.leaves(state) if exact else jax.tree.leaves(state.filter)
 
 
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
@@ -45,8 +31,9 @@ def _comparable(state, exact: bool):
 def test_stream_equals_pure_functions(meas, dtype, model):
     """Every update and the samples between frames equal tracker_update / tracker_sample.
 
-    The packed stream and ``tracker_update`` share the maths (``_update``, ``_eval_render``):
-    this checks the packing (layouts, dtypes, no recompilation), not the tracker; the maths is
+    The stream runs the same code (``_update``, ``RenderSegment.evaluate``) on the leaves of
+    its config and state: this checks the wrapper (dtypes, no recompilation), not the tracker;
+    the maths is
     tested independently in tests/tracking/test_tracker.py (finite-difference continuity of the
     world-frame velocities, segment starts, accuracy against ground truth and the Kalman
     baseline) and tests/tracking/test_kalman.py (filterpy)."""
@@ -55,13 +42,14 @@ def test_stream_equals_pure_functions(meas, dtype, model):
     s = pj.TrackerStream(cfg, dtype=dtype)
     ref = pj.tracker_init(cfg, 0.0, dtype)
     tol = 1e-12 if dtype == jnp.float64 else 2e-5
-    fn = stream._compiled_update(s._config_layout, s._layout)
-    n0 = fn._cache_size()
+    fn = tracker.tracker_update
     p_nan, _ = s.sample(0.01)
     assert np.all(np.isnan(np.asarray(p_nan)))  # nothing measured yet
     for k in range(40):
         s.update(float(mt[k]), mp[k], mq[k])
         ref = pj.tracker_update(cfg, ref, mt[k], mp[k], mq[k])
+        if k == 0:  # compiled for the argument types of the loop
+            n0 = fn._cache_size(), s._update._cache_size()
         for a, b in zip(jax.tree.leaves(s.state), jax.tree.leaves(ref)):
             assert a.dtype == b.dtype and a.shape == b.shape
         exact = dtype == jnp.float64
@@ -75,22 +63,20 @@ def test_stream_equals_pure_functions(meas, dtype, model):
         np.testing.assert_allclose(np.asarray(P), np.asarray(Pr), rtol=tol, atol=tol)
         np.testing.assert_allclose(np.asarray(Q), np.asarray(Qr), rtol=tol, atol=tol)
         assert np.all(np.isfinite(np.asarray(P))) and np.all(np.isfinite(np.asarray(Q)))
-    # static shapes: the 40 frames (Python-float times, NumPy measurements) compiled once
-    assert fn._cache_size() - n0 <= 1
+    # static shapes: no compilation after the first frame (Python-float times, NumPy measurements)
+    assert (fn._cache_size(), s._update._cache_size()) == n0
 
 
-def test_stream_packing_layout_and_state_round_trip(meas):
-    """Packed vectors hold at most 64 elements (512 bytes of float64: XLA's CPU runtime runs
-    the kernels in the calling thread), the config is one vector, booleans survive, and the
-    state setter / getter round-trip exactly."""
-    mt, mp, mq = meas
-    # single-model filter: the IMM's (3, 6, 6) covariances are leaves of 108 elements
-    cfg = pj.TrackerConfig(imm=None)
+def test_stream_config_arrays_and_state_round_trip(meas):
+    """The stream's config leaves are arrays of the state's dtype (converted once), booleans
+    stay booleans, and the state setter / getter round-trip exactly."""
+    _, mp, mq = meas
+    cfg = pj.TrackerConfig()
     s = pj.TrackerStream(cfg, dtype=jnp.float64)
-    assert len(s._cvec) == 1 and s._cvec[0].shape == (len(jax.tree.leaves(cfg)),)
-    assert all(v.ndim == 1 and v.size <= 64 for v in s._packed)
-    assert len(s._packed) <= len(jax.tree.leaves(s.state)) // 2
-    assert not bool(s.state.started) and s.state.filter.initialized.dtype == jnp.bool_
+    assert s.dtype == jnp.float64
+    assert all(isinstance(x, jax.Array) and x.dtype == jnp.float64 for x in s._config_leaves)
+    assert not bool(s.state.started) and s.state.started.dtype == jnp.bool_
+    assert s.state.filter.initialized.dtype == jnp.bool_
     s.update(0.0, mp[0], mq[0])
     st = s.state
     assert bool(st.started) and bool(st.filter.initialized)
@@ -98,21 +84,53 @@ def test_stream_packing_layout_and_state_round_trip(meas):
     s2.state = st
     for a, b in zip(jax.tree.leaves(s2.state), jax.tree.leaves(st)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    # the render vectors are passed to the sample kernel without unpacking
-    for i, r in zip(s._render_at, st.render):
-        np.testing.assert_array_equal(np.asarray(s._packed[i]), np.asarray(r))
+    taus = jnp.asarray([0.0, 0.01, 0.5])
+    for a, b in zip(s2.sample(taus), s.sample(taus)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-def test_layout_round_trips_integer_and_bool_leaves():
-    tree = {"b": jnp.array([True, False]), "i": jnp.arange(3, dtype=jnp.int32),
-            "x": jnp.linspace(0.0, 1.0, 70, dtype=jnp.float32).reshape(7, 10), "y": jnp.float32(2.5)}
-    lay = stream._Layout(tree, jnp.float32)
-    packed = lay.pack(tree)
-    assert [v.size for v in packed] == [5, 70, 1]  # 70 > 64 elements: a vector of its own
-    out = lay.unpack(packed)
-    for k in tree:
-        assert out[k].dtype == (tree[k].dtype if k in "bi" else jnp.float32)
-        np.testing.assert_array_equal(np.asarray(out[k]), np.asarray(tree[k]))
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_stream_sample_is_the_curve_objects_evaluation(meas, dtype):
+    """Inside the segment a sample is the ``PHQuintic`` / ``QuaternionHermite`` piece that
+    covers the time, evaluated at ``(t - start) / duration`` (the second piece from its start
+    on); past the end it coasts from the end pose: position ``p_end + v_end dt`` and
+    orientation ``exp(w_end dt / 2) q_end`` (rotation vector ``w_end dt``, checked with SciPy)
+    during ``coast_time``."""
+    from scipy.spatial.transform import Rotation
+
+    mt, mp, mq = meas
+    s = pj.TrackerStream(dtype=dtype)
+    tol = 1e-12 if dtype == jnp.float64 else 2e-6
+    for k in range(12):
+        s.update(float(mt[k]), mp[k], mq[k])
+        st = s.state
+        if not bool(st.started):
+            continue
+        t0, dur = float(st.t0), np.asarray(st.duration, np.float64)
+        starts = [t0, float(st.segment.start[1])]
+        end = starts[1] + dur[1]
+        for i in range(2):
+            for frac in (0.0, 0.3, 0.999):
+                tau = starts[i] + frac * dur[i]
+                piece = jax.tree.map(lambda x, i=i: x[i], st.curve)
+                rot = jax.tree.map(lambda x, i=i: x[i], st.rotation)
+                u = (jnp.asarray(tau, dtype) - st.segment.start[i]) / st.duration[i]
+                p, q = s.sample(jnp.asarray(tau, dtype))
+                np.testing.assert_allclose(np.asarray(p), np.asarray(piece.position(u)),
+                                           rtol=tol, atol=tol)
+                np.testing.assert_allclose(np.asarray(q), np.asarray(rot.rotation(u)),
+                                           rtol=tol, atol=tol)
+        seg = st.segment
+        dt = 0.5 * float(seg.coast_time)
+        p, q = (np.asarray(x, np.float64) for x in s.sample(jnp.asarray(end + dt, dtype)))
+        np.testing.assert_allclose(p, np.asarray(seg.p_end) + dt * np.asarray(seg.v_end),
+                                   atol=10 * tol)
+        q_end = np.asarray(seg.q_end, np.float64)
+        r = Rotation.from_rotvec(dt * np.asarray(seg.w_end, np.float64)) * Rotation.from_quat(
+            q_end[[1, 2, 3, 0]])
+        expected = r.as_quat()[[3, 0, 1, 2]]
+        expected *= np.sign(expected @ q)
+        np.testing.assert_allclose(q, expected, atol=10 * tol + (1e-6 if dtype == jnp.float32 else 0))
 
 
 def test_stream_is_the_track_scan(meas):

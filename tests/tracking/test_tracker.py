@@ -162,7 +162,7 @@ def test_segment_starts_at_the_rendered_state_and_correction_decays(head):
 def test_track_equals_streaming_loop(head):
     """``track`` (one scan) equals the loop of ``tracker_update`` / ``tracker_sample``.
 
-    Both paths run the same ``_update`` / ``_eval_render`` code, so this checks the scan's
+    Both paths run the same ``_update`` / ``RenderSegment.evaluate`` code, so this checks the scan's
     plumbing (causal selection of states, shapes, no recompilation), not the maths; the maths
     is covered independently by ``test_stream_is_c1_across_camera_frames`` and
     ``test_segment_starts_at_the_rendered_state_and_correction_decays`` (finite differences of
@@ -354,6 +354,41 @@ def test_gradient_through_track_wrt_config(head):
     h = 1e-6
     num = (loss(pj.TrackerConfig(horizon=0.05 + h)) - loss(pj.TrackerConfig(horizon=0.05 - h))) / (2 * h)
     np.testing.assert_allclose(float(g.horizon), float(num), rtol=1e-4)
+
+
+def test_head_at_rest_values_and_gradients_finite():
+    """A head at rest: every angular velocity is exactly zero (rotation increments of the
+    curves, coasting rotation), where ``|w|`` has no derivative. The rendered pose and its
+    velocities (what the next update starts from) inside both pieces, while coasting and
+    after stopping, and their gradients with respect to the render segment stay finite."""
+    import equinox as eqx
+
+    cfg = pj.TrackerConfig(imm=None)
+    p0 = jnp.asarray([0.1, -0.2, 0.5])
+    q0 = jnp.asarray([1.0, 0.0, 0.0, 0.0])
+    taus = 2 / 30 + jnp.asarray([0.0, 0.005, 0.02, 0.1, 0.2, 1.0])
+    st = pj.tracker_init(cfg, 0.0, jnp.float64)
+    for k in range(3):
+        st = pj.tracker_update(cfg, st, k / 30, p0, q0)
+    seg = st.segment
+    np.testing.assert_array_equal(np.asarray(seg.rotation.w1), 0.0)  # really at rest
+    np.testing.assert_array_equal(np.asarray(seg.w_end), 0.0)
+
+    @eqx.filter_jit
+    def loss(seg):
+        p, v, q, w = jax.vmap(seg.evaluate)(taus)
+        return jnp.sum(p) + jnp.sum(v) + jnp.sum(q * jnp.arange(4.0)) + jnp.sum(w), (p, q)
+
+    (_, (P, Q)), g = eqx.filter_value_and_grad(loss, has_aux=True)(seg)
+    np.testing.assert_allclose(np.asarray(P), np.broadcast_to(p0, P.shape), atol=1e-12)
+    np.testing.assert_allclose(np.abs(np.asarray(Q)[:, 0]), 1.0, atol=1e-12)
+    leaves = jax.tree.leaves(g)
+    assert len(leaves) >= 15
+    for x in leaves:
+        assert np.all(np.isfinite(np.asarray(x)))
+    # the rotation increments and the coasting angular velocity do get gradients
+    assert np.abs(np.asarray(g.rotation.w2)).max() > 0
+    assert np.abs(np.asarray(g.w_end)).max() > 0
 
 
 def test_float32_stream_close_to_float64(head):
