@@ -109,24 +109,33 @@ def test_notebook_runs(nb, tmp_path, monkeypatch):
 
 def test_test_config_reruns_worker_crashes_only(tmp_path):
     """The repository's pytest options (pyproject.toml) re-run a test once when a native crash
-    kills its xdist worker, and never re-run a failing assertion."""
+    kills its xdist worker or when it hangs past the timeout, and never re-run a failing
+    assertion."""
     import tomllib
 
-    addopts = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]["addopts"]
-    (tmp_path / "pytest.ini").write_text(f"[pytest]\naddopts = {addopts}\n")
-    flag = tmp_path / "crashed_once"
+    ini = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]
+    (tmp_path / "pytest.ini").write_text(
+        f"[pytest]\naddopts = {ini['addopts']}\ntimeout = {ini['timeout']}\n"
+        f"timeout_method = {ini['timeout_method']}\n")
+    flag, hung = tmp_path / "crashed_once", tmp_path / "hung_once"
     (tmp_path / "test_demo.py").write_text(
-        "import ctypes, pathlib\n"
+        "import ctypes, pathlib, time, pytest\n"
         f"FLAG = pathlib.Path({str(flag)!r})\n"
+        f"HUNG = pathlib.Path({str(hung)!r})\n"
         "def test_native_crash_once():\n"
         "    if not FLAG.exists():\n"
         "        FLAG.write_text('1')\n"
         "        ctypes.string_at(0)  # segmentation fault\n"
+        "@pytest.mark.timeout(3)  # the repository's timeout, shortened for this test\n"
+        "def test_hang_once():\n"
+        "    if not HUNG.exists():\n"
+        "        HUNG.write_text('1')\n"
+        "        time.sleep(3600)  # a hang\n"
         "def test_assertion():\n"
         "    assert 1 == 2\n"
     )
     out = subprocess.run([sys.executable, "-m", "pytest", "-n", "2", "-q", "-p", "no:cacheprovider"],
                          cwd=tmp_path, capture_output=True, text=True, timeout=300)
-    assert flag.exists()  # the crash happened
-    assert "1 failed, 1 passed, 1 rerun" in out.stdout, out.stdout[-2000:]
+    assert flag.exists() and hung.exists()  # the crash and the hang happened
+    assert "1 failed, 2 passed, 2 rerun" in out.stdout, out.stdout[-2000:]
     assert "FAILED test_demo.py::test_assertion" in out.stdout
