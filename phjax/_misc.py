@@ -7,6 +7,7 @@ Each helper returns finite values *and* finite gradients at its singular point, 
 from __future__ import annotations
 
 import jax.numpy as jnp
+from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
 
@@ -65,9 +66,11 @@ def safe_normalize(
 ) -> Array:
     """``x / |x|``; where ``|x| == 0`` return ``fallback`` (default: ``x`` itself, i.e. 0)."""
     x = jnp.asarray(x)
-    n = safe_norm(x, keepdims=True)
-    ok = n > 0
-    out = x / jnp.where(ok, n, 1)
+    # x * rsqrt(|x|^2): the root's only user is the product, so XLA fuses the whole function
+    # into one kernel (a norm with two users, the test and the division, is a kernel of its own)
+    sq = sum_last(x * x, keepdims=True)
+    ok = sq > 0
+    out = x * lax.rsqrt(jnp.where(ok, sq, 1))
     if fallback is None:
         return out
     return jnp.where(ok, out, jnp.broadcast_to(jnp.asarray(fallback, out.dtype), out.shape))

@@ -11,7 +11,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._misc import dot_last, safe_atan2, safe_div, safe_norm, safe_sqrt
+from ._misc import dot_last, safe_atan2, safe_div, safe_norm, safe_normalize, safe_sqrt
 
 __all__ = [
     "quat_mul",
@@ -68,9 +68,7 @@ def quat_inv(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
 def quat_normalize(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
     """``q / |q|``; the zero quaternion maps to the identity."""
     q = jnp.asarray(q)
-    n = safe_norm(q, keepdims=True)
-    ident = quat_identity(dtype=q.dtype)
-    return jnp.where(n > 0, q / jnp.where(n > 0, n, 1), ident)
+    return safe_normalize(q, quat_identity(dtype=q.dtype))
 
 
 def quat_rotate(q: Float[ArrayLike, "... 4"], v: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:

@@ -45,7 +45,6 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg as jsl
 from jax.nn import logsumexp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
@@ -60,6 +59,8 @@ from .kalman import (
     _rot_matrices,
     _select,
     _so3_left_jacobian,
+    _so3_left_jacobian_inv,
+    _spd_inverse,
     _sym,
 )
 from .models import ConstantAcceleration, ConstantVelocity
@@ -264,23 +265,21 @@ def imm_combine(
 def _kf_update(x, p, h, r, y):
     """Joseph-form update with innovation ``y``; returns ``(x, P, S, nis, loglik)``."""
     s = _sym(h @ p @ h.T + r)
-    chol = jnp.linalg.cholesky(s)
-    gain = jsl.cho_solve((chol, True), h @ p).T
+    s_inv, log_det = _spd_inverse(s)
+    gain = (p @ h.T) @ s_inv
     x_new = x + gain @ y
     ikh = jnp.eye(x.shape[0], dtype=x.dtype) - gain @ h
     p_new = _sym(ikh @ p @ ikh.T + gain @ r @ gain.T)
-    white = jsl.solve_triangular(chol, y, lower=True)
-    nis = jnp.sum(white * white)
-    loglik = -0.5 * nis - jnp.sum(jnp.log(jnp.diagonal(chol))) - 0.5 * y.shape[0] * _LOG_2PI
+    nis = y @ s_inv @ y
+    loglik = -0.5 * (nis + log_det + y.shape[0] * _LOG_2PI)
     return x_new, p_new, s, nis, loglik
 
 
 def _mixture_innovation(log_cbar, ys, ss):
     """Mixture innovation, its covariance and NIS from per-model innovations ``ys``, ``S``."""
     y, s = imm_combine(log_cbar, ys, ss)
-    chol = jnp.linalg.cholesky(s)
-    white = jsl.solve_triangular(chol, y, lower=True)
-    return y, s, jnp.sum(white * white)
+    s_inv, _ = _spd_inverse(s)
+    return y, s, y @ s_inv @ y
 
 
 def _mode_update(log_cbar, loglik, valid):
@@ -395,7 +394,7 @@ def _tangent(q, ref, cov=None):
         return delta, None
     z3 = jnp.zeros((3, 3), q.dtype)
     eye = jnp.eye(3, dtype=q.dtype)
-    t = jax.vmap(lambda d: _block(jnp.linalg.inv(_so3_left_jacobian(d)), z3, z3, eye))(delta)
+    t = jax.vmap(lambda d: _block(_so3_left_jacobian_inv(d), z3, z3, eye))(delta)
     return delta, jnp.einsum("kab,kbc,kdc->kad", t, cov, t)
 
 
@@ -589,10 +588,16 @@ def imm_predict_pose(
         ``(position, quaternion, velocity, angular_velocity)``.
     """
     _, dt = _clamped_time(state, t)
-    fs, _ = _stack_position_models(config, dt)
-    xs = jnp.einsum("kab,kb->ka", fs, state.x)
+    # x_k(t) = p_k + dt v_k (+ dt^2 / 2 a_k for CA models): mix the derivatives first (linear;
+    # written out, no (K, n, n) transition matrices)
     mu = jnp.exp(state.pos_log_mu)
-    x = mu @ xs
+    p, v = mu @ state.x[:, :3], mu @ state.x[:, 3:6]
+    p, v = p + dt * v, v
+    if config.order == 3:
+        ca = jnp.asarray([m.order == 3 for m in config.position_models], mu.dtype)
+        a = (mu * ca) @ state.x[:, 6:9]
+        p, v = p + dt * dt / 2 * a, v + dt * a
+    x = jnp.concatenate([p, v])
     qs = quat_normalize(quat_mul(quat_from_rotvec(state.w * dt), state.q))
     ref = _reference(state.rot_log_mu, qs)
     delta, _ = _tangent(qs, ref)

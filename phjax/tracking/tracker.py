@@ -382,9 +382,8 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion)
     tc = _SETTLE * h  # time constant of the correction
     t1 = _KNOT * h  # the knot between the two pieces
     # the filter's estimate at t (kf.t == t: its mean, normalised as predict_pose would)
-    p_k, q_k, v_k, w_k = _filter_predict(config, kf, t)
-    p_1, q_1, v_1, w_1 = _filter_predict(config, kf, t + t1)
-    p_T, q_T, v_T, w_T = _filter_predict(config, kf, t + h)
+    pred = jax.vmap(lambda tau: _filter_predict(config, kf, tau))(jnp.stack([t, t + t1, t + h]))
+    (p_k, p_1, p_T), (q_k, q_1, q_T), (v_k, v_1, v_T), (w_k, w_1, w_T) = pred
     # first frame: start at the filter's estimate at rest
     z = jnp.zeros(3, dtype)
     fresh = ~was_init

@@ -296,6 +296,48 @@ def test_reset_jacobian_is_left_jacobian(a):
     np.testing.assert_allclose(left_jacobian_j(a), jac, atol=1e-10)
 
 
+left_jacobian_inv_j = jax.jit(K._so3_left_jacobian_inv)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-4, 0.3, 0.999, 1.0, 1.001, 2.0, 3.0, np.pi - 1e-6])
+def test_inverse_left_jacobian_closed_form(angle):
+    """The closed form (series below |phi| = 1, trigonometric above) equals the matrix inverse
+    of J_l on both sides of the switch; float32 to single precision."""
+    rng = np.random.default_rng(7)
+    axes = rng.normal(size=(20, 3))
+    phi = angle * axes / np.linalg.norm(axes, axis=1, keepdims=True)
+    ref = np.linalg.inv(np.asarray(left_jacobian_j(jnp.asarray(phi))))
+    np.testing.assert_allclose(left_jacobian_inv_j(jnp.asarray(phi)), ref, rtol=0, atol=1e-13)
+    f32 = left_jacobian_inv_j(jnp.asarray(phi, jnp.float32))
+    assert f32.dtype == jnp.float32
+    np.testing.assert_allclose(f32, ref, rtol=0, atol=2e-6)
+
+
+def test_inverse_left_jacobian_gradient_finite_at_zero():
+    """Zero rotation (a still head): finite value and gradient, which match finite differences."""
+    fn = lambda p: jnp.sum(K._so3_left_jacobian_inv(p) * jnp.arange(9.0).reshape(3, 3))  # noqa: E731
+    for p0 in (jnp.zeros(3), jnp.asarray([0.4, -0.2, 0.9])):
+        g = jax.grad(fn)(p0)
+        assert np.all(np.isfinite(g))
+        fd = [(fn(p0 + 1e-6 * e) - fn(p0 - 1e-6 * e)) / 2e-6 for e in jnp.eye(3)]
+        np.testing.assert_allclose(g, fd, atol=1e-7)
+
+
+@pytest.mark.parametrize("m", [2, 3, 4])
+def test_spd_inverse_matches_numpy(m):
+    """Closed form (3 x 3, batched) and Cholesky (other sizes): inverse and log-determinant as
+    numpy's, including badly scaled innovation covariances (mm^2 next to rad^2)."""
+    rng = np.random.default_rng(m)
+    a = rng.normal(size=(5, m, m))
+    scale = np.diag(np.logspace(-5, 0, m))
+    s = scale @ (a @ np.swapaxes(a, -1, -2) + 0.1 * np.eye(m)) @ scale
+    inv, log_det = jax.jit(K._spd_inverse)(jnp.asarray(s))
+    ref = np.linalg.inv(s)
+    # compared in the scaled coordinates, where the matrices are well conditioned
+    np.testing.assert_allclose(scale @ np.asarray(inv) @ scale, scale @ ref @ scale, atol=1e-10)
+    np.testing.assert_allclose(log_det, np.linalg.slogdet(s)[1], rtol=1e-12, atol=1e-10)
+
+
 quat4 = arrays(np.float64, (4,), elements=st.floats(-1, 1, allow_nan=False, width=64)).filter(
     lambda q: np.linalg.norm(q) > 1e-3
 )
