@@ -53,6 +53,7 @@ from .kalman import (
     _block,
     _canonical_rotvec,
     _clamped_time,
+    _extrapolate_derivatives,
     _float_dtype,
     _initial_moments,
     _measurement_validity,
@@ -588,19 +589,16 @@ def imm_predict_pose(
         ``(position, quaternion, velocity, angular_velocity)``.
     """
     _, dt = _clamped_time(state, t)
-    # x_k(t) = p_k + dt v_k (+ dt^2 / 2 a_k for CA models): mix the derivatives first (linear;
-    # written out, no (K, n, n) transition matrices)
+    # the position prediction is linear: mix the models' derivatives, then extrapolate once (no
+    # (K, n, n) transitions); a CV model in a CA state ignores its acceleration entry
     mu = jnp.exp(state.pos_log_mu)
-    p, v = mu @ state.x[:, :3], mu @ state.x[:, 3:6]
-    p, v = p + dt * v, v
-    if config.order == 3:
-        ca = jnp.asarray([m.order == 3 for m in config.position_models], mu.dtype)
-        a = (mu * ca) @ state.x[:, 6:9]
-        p, v = p + dt * dt / 2 * a, v + dt * a
-    x = jnp.concatenate([p, v])
+    ca = jnp.asarray([m.order == 3 for m in config.position_models], mu.dtype)
+    weights = [mu, mu, mu * ca][:config.order]
+    p, v = _extrapolate_derivatives(
+        [w @ state.x[:, 3 * i : 3 * i + 3] for i, w in enumerate(weights)], dt)
     qs = quat_normalize(quat_mul(quat_from_rotvec(state.w * dt), state.q))
     ref = _reference(state.rot_log_mu, qs)
     delta, _ = _tangent(qs, ref)
     mur = jnp.exp(state.rot_log_mu)
     q = quat_normalize(quat_mul(quat_from_rotvec(mur @ delta), ref))
-    return x[:3], q, x[3:6], mur @ state.w
+    return p, q, v, mur @ state.w

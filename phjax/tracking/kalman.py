@@ -734,10 +734,15 @@ def predict_pose(
         ``(position, quaternion, velocity, angular_velocity)`` at ``t``.
     """
     _, dt = _clamped_time(state, t)
-    n = config.order
-    xs = [state.x[3 * i : 3 * i + 3] for i in range(n)]
-    # x_i(t) = sum_k dt^(k-i) / (k-i)! x_k, written out (a dot is a kernel of its own on CPU)
-    x = [sum((dt ** (k - i) / math.factorial(k - i) * xs[k] for k in range(i + 1, n)), xs[i])
-         for i in range(2)]
+    p, v = _extrapolate_derivatives([state.x[3 * i : 3 * i + 3] for i in range(config.order)], dt)
     q = quat_normalize(quat_mul(quat_from_rotvec(state.w * dt), state.q))
-    return x[0], q, x[1], state.w
+    return p, q, v, state.w
+
+
+def _extrapolate_derivatives(xs, dt):
+    """Position and velocity ``dt`` later from the derivative vectors ``xs = [p, v, (a)]``
+    (highest one constant): ``x_i(t) = sum_k dt^(k-i) / (k-i)! x_k``, written out (a dot is a
+    kernel of its own on CPU). Shared by :func:`predict_pose` and the IMM's prediction."""
+    n = len(xs)
+    return [sum((dt ** (k - i) / math.factorial(k - i) * xs[k] for k in range(i + 1, n)), xs[i])
+            for i in range(2)]
