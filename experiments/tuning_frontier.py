@@ -6,9 +6,10 @@
 Protocol (an honest split of the development set of ``experiments/devset.py``):
 
 * **train** on TUM RGB-D fr1_desk and fr1_room and TUM VI room1 (first ``--seconds`` of each):
-  :func:`phjax.tracking.tuning.tune_tracker` (BFGS through the whole causal stream) tunes the Kalman noise
-  (``pos/rot_process_noise``, ``pos/rot_meas_noise``) and the segment ``horizon`` for each
-  ``lambda``, starting from the hand-set default ``TrackerConfig()``; the loss is position and
+  :func:`phjax.tracking.tuning.tune_tracker` (BFGS through the whole causal stream) tunes the
+  default tracker's parameters (:func:`phjax.tracking.tuning.default_parameters`: the IMM's
+  model densities and switch rate, and the segment ``horizon``) for each ``lambda``, starting
+  from the hand-set default ``TrackerConfig()``; the loss is position and
   rotation RMSE + ``lambda`` x RMS jerk, each relative to the tuned Kalman-CV extrapolation;
 * **test** on every other development sequence (other TUM RGB-D and TUM VI rooms, VR head traces;
   orientation-only traces count for the rotation columns only): the public ``phjax.track``
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -139,13 +141,16 @@ def main(argv=None):
     ap.add_argument("--seconds", type=float, default=None, help="window length (default 30, quick 10)")
     ap.add_argument("--max-steps", type=int, default=None, help="BFGS steps per lambda (default 40, quick 12)")
     ap.add_argument("--lambdas", default="0,0.1,0.3,1,3", help="comma-separated lambda values")
-    ap.add_argument("--parameters", default=",".join(tuning.DEFAULT_PARAMETERS),
-                    help="comma-separated parameters to tune (default: noise model + horizon)")
+    ap.add_argument("--parameters", default=None,
+                    help="comma-separated parameters to tune (default: "
+                         "phjax.tracking.tuning.default_parameters() of the default tracker, i.e. "
+                         "the IMM's model densities and switch rate + horizon)")
     ap.add_argument("--draws", type=int, default=1,
                     help="sensor noise realisations per training sequence (default 1)")
     ap.add_argument("--out", default="results/tuning_frontier", help="output folder")
     args = ap.parse_args(argv)
-    params = tuple(p for p in args.parameters.split(",") if p)
+    params = (tuning.default_parameters(TrackerConfig()) if args.parameters is None
+              else tuple(p for p in args.parameters.split(",") if p))
     seconds = args.seconds or (10.0 if args.quick else 30.0)
     max_steps = args.max_steps or (12 if args.quick else 40)
     lams = [float(x) for x in args.lambdas.split(",")]
@@ -203,14 +208,25 @@ def main(argv=None):
         status = f"{e['status']} ({e['steps']} steps)" if "status" in e else ""
         lines.append(f"| {e['name']} | {tr['pos']:.3f} | {tr['rot']:.3f} | {tr['jp']:.3f} | "
                      f"{tr['jr']:.3f} | {loss} | {status} |")
-    lines += ["", "Tuned parameters", "",
+    def filter_cells(c):
+        """The causal stream's filter parameters: the IMM's model densities and switch rate,
+        or the single-model filter's noise."""
+        if c.imm is None:
+            k = c.kalman
+            return [f"{k.pos_process_noise:.4g}", f"{k.rot_process_noise:.4g}",
+                    f"single model, sigma {1e3 * k.pos_meas_noise:.2f} mm / "
+                    f"{np.degrees(k.rot_meas_noise):.3f} deg"]
+        qs = [" / ".join(f"{float(m.q):.3g}" for m in ms)
+              for ms in (c.imm.position_models, c.imm.rotation_models)]
+        return qs + [f"{math.exp(float(c.imm.log_switch_rate)):.3g}"]
+
+    lines += ["", "Tuned parameters (the IMM's densities per model, quietest first)", "",
               "| configuration | horizon [ms] | q_pos [m^2/s^3] | q_rot [rad^2/s^3] | "
-              "sigma_pos [mm] | sigma_rot [deg] |", "|---|---|---|---|---|---|"]
+              "switch rate [1/s] |", "|---|---|---|---|---|"]
     for e in entries:
         c = e["config"]
-        lines.append(f"| {e['name']} | {1e3 * c.horizon:.1f} | {c.kalman.pos_process_noise:.4g} | "
-                     f"{c.kalman.rot_process_noise:.4g} | {1e3 * c.kalman.pos_meas_noise:.2f} | "
-                     f"{np.degrees(c.kalman.rot_meas_noise):.3f} |")
+        lines.append(f"| {e['name']} | {1e3 * c.horizon:.1f} | " + " | ".join(filter_cells(c))
+                     + " |")
     lines += ["", "Training-set ratios (in-sample, from the tuning loss terms)", "",
               "| configuration | pos RMSE | rot RMSE | pos jerk | rot jerk |", "|---|---|---|---|---|"]
     for e in entries[1:]:

@@ -4,8 +4,9 @@
 # Jupytext percent notebook (open with Jupyter + jupytext, or run as a script:
 # `python notebooks/03_tuning.py`). The causal stream of `phjax.track` is one `lax.scan` over
 # the camera frames followed by render-rate sampling, so the accuracy and smoothness of the
-# rendered poses are differentiable functions of the tracker's parameters (Kalman noise,
-# segment horizon). This notebook differentiates them on a short synthetic recording, checks
+# rendered poses are differentiable functions of the tracker's parameters (by default the IMM
+# filter's model noise densities and switch rate, and the segment horizon). This notebook
+# differentiates them on a short synthetic recording, checks
 # the gradient against finite differences, takes a few BFGS steps and traces the
 # accuracy / smoothness frontier for three values of the trade-off weight lambda.
 # Set `PHJAX_NOTEBOOK_FIGURES=dir` to save the figure. (The first gradient compiles the
@@ -44,7 +45,8 @@ print("reference [pos RMSE mm, rot RMSE deg, pos jerk m/s^3, rot jerk rad/s^3]:"
 # %% [markdown]
 # ## The gradient through the stream
 # Parameters are optimised in log space, so the gradient below is
-# `d loss / d log(parameter)`: the change of the loss per relative change of the parameter.
+# `d loss / d log(parameter)`: the change of the loss per relative change of the parameter (the
+# IMM's `log_q` and `log_switch_rate` are logarithms already).
 
 # %%
 problem = tuning.make_problem(data, lam=0.3)
@@ -52,8 +54,9 @@ y0 = problem.params_from_config(pj.TrackerConfig())
 loss0, grad0, terms0 = problem.value_and_grad(y0)
 print(f"loss at the hand-set default: {float(loss0):.4f} (Kalman-CV scores 1.3)")
 for name, g in zip(problem.parameters, np.asarray(grad0)):
-    print(f"  d loss / d log {name:18s} {g:+.5f}")
-# central difference for the position process noise
+    label = name if name.split(".")[-1].startswith("log_") else f"log {name}"
+    print(f"  d loss / d {label:28s} {g:+.5f}")
+# central difference for the first parameter (the quietest position model's density)
 h = 1e-5
 e = jnp.zeros_like(y0).at[0].set(h)
 fd = (float(problem.value_and_grad(y0 + e)[0]) - float(problem.value_and_grad(y0 - e)[0])) / (2 * h)
@@ -72,7 +75,7 @@ config, result = tuning.tune_tracker(
                              f"({'accepted' if s.accepted else 'rejected'})"))
 print(result.message)
 for k in result.parameters:
-    print(f"  {k:18s} {result.initial_parameters[k]:.4g} -> {result.parameters[k]:.4g}")
+    print(f"  {k:28s} {result.initial_parameters[k]:.4g} -> {result.parameters[k]:.4g}")
 assert result.final_loss < result.initial_loss
 
 # %% [markdown]

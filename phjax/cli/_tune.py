@@ -118,16 +118,23 @@ def cmd_tune(args) -> int:
     jax.config.update("jax_enable_x64", True)
     from ..motion.simulate import SensorModel
     from ..tracking.tracker import TrackerConfig
-    from ..tracking.tuning import DEFAULT_PARAMETERS, prepare_recordings, save_config, tune_tracker
+    from ..tracking.tuning import (
+        check_parameters,
+        default_parameters,
+        prepare_recordings,
+        save_config,
+        tune_tracker,
+    )
 
     if args.max_steps < 1:
         raise ValueError(f"--max-steps must be >= 1, got {args.max_steps}")
     if not args.lam >= 0:
         raise ValueError(f"--lambda must be non-negative, got {args.lam}")
     start = config_from_args(args)
-    start = TrackerConfig(imm=None) if start is None else start
-    params = DEFAULT_PARAMETERS if not args.parameters else tuple(
+    start = TrackerConfig() if start is None else start
+    params = default_parameters(start) if not args.parameters else tuple(
         p.strip() for p in args.parameters.split(",") if p.strip())
+    check_parameters(start, params)  # unknown names: one-line error before data preparation
     check_output(args.output)
     trajs = [read_input(f, args.format) for f in args.train]
     sensor = SensorModel(rate=args.camera_rate, sigma_p=args.sigma_p / 1e3,
@@ -199,8 +206,9 @@ def add_commands(sub) -> None:
     p = sub.add_parser(
         "tune", help="tune the causal tracker's parameters by gradient descent on recordings",
         description="Simulate the sensor on ground-truth trajectory files, differentiate the "
-        "whole causal stream with respect to the tracker's parameters (Kalman noise, segment "
-        "horizon; log parameterisation) and minimise RMSE + lambda x RMS jerk (position and "
+        "whole causal stream with respect to the tracker's parameters (by default the IMM "
+        "filter's model noise densities and switch rate and the segment horizon; log "
+        "parameterisation) and minimise RMSE + lambda x RMS jerk (position and "
         "rotation, each relative to the tuned Kalman constant-velocity extrapolation, so lambda "
         "is dimensionless and that baseline scores 1 + lambda) with optimistix BFGS. Writes a "
         "JSON configuration for --config of the other commands.")
@@ -214,8 +222,12 @@ def add_commands(sub) -> None:
                    help="use only the first S seconds of each file")
     p.add_argument("--max-steps", type=positive_int, default=50, help="maximum BFGS steps (default 50)")
     p.add_argument("--parameters", default=None,
-                   help="comma-separated parameters to tune (default: pos_process_noise, "
-                   "rot_process_noise, pos_meas_noise, rot_meas_noise, horizon)")
+                   help="comma-separated parameters to tune (default, IMM filter: "
+                   "imm.position_models.K.log_q and imm.rotation_models.K.log_q for every model "
+                   "K, log_switch_rate, horizon; with a --config of the single-model filter: "
+                   "pos_process_noise, rot_process_noise, pos_meas_noise, rot_meas_noise, "
+                   "horizon). Names of every tunable parameter: "
+                   "phjax.tracking.tuning.tunable_parameters()")
     p.add_argument("--position-weight", type=float, default=1.0,
                    help="weight of the position terms (default 1)")
     p.add_argument("--rotation-weight", type=float, default=1.0,

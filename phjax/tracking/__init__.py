@@ -63,7 +63,15 @@ from .tracker import (
     tracker_sample,
     tracker_update,
 )
-from .tuning import TuningResult, load_config, save_config, tracker_loss, tune_tracker
+from .tuning import (
+    TuningResult,
+    default_parameters,
+    load_config,
+    save_config,
+    tracker_loss,
+    tunable_parameters,
+    tune_tracker,
+)
 
 __all__ = [
     "MeasurementNoise",
@@ -116,4 +124,6 @@ __all__ = [
     "tracker_sample",
     "tracker_update",
     "tune_tracker",
+    "tunable_parameters",
+    "default_parameters",
 ]

@@ -56,6 +56,8 @@ from .kalman import (
     _extrapolate_derivatives,
     _float_dtype,
     _initial_moments,
+    _joseph_update,
+    _measure_first3,
     _measurement_validity,
     _rot_matrices,
     _select,
@@ -264,16 +266,10 @@ def imm_combine(
 
 
 def _kf_update(x, p, h, r, y):
-    """Joseph-form update with innovation ``y``; returns ``(x, P, S, nis, loglik)``."""
-    s = _sym(h @ p @ h.T + r)
-    s_inv, log_det = _spd_inverse(s)
-    gain = (p @ h.T) @ s_inv
-    x_new = x + gain @ y
-    ikh = jnp.eye(x.shape[0], dtype=x.dtype) - gain @ h
-    p_new = _sym(ikh @ p @ ikh.T + gain @ r @ gain.T)
-    nis = y @ s_inv @ y
-    loglik = -0.5 * (nis + log_det + y.shape[0] * _LOG_2PI)
-    return x_new, p_new, s, nis, loglik
+    """The Kalman update and the model's Gaussian log-likelihood of ``y``; returns
+    ``(x, P, S, nis, loglik)``."""
+    x_new, p_new, s, nis, log_det = _joseph_update(x, p, h, r, y)
+    return x_new, p_new, s, nis, -0.5 * (nis + log_det + y.shape[0] * _LOG_2PI)
 
 
 def _mixture_innovation(log_cbar, ys, ss):
@@ -430,9 +426,8 @@ def _rot_step(config, state, dt, q_meas, rot_valid, r_rot):
     # per-model update
     q_safe = quat_normalize(jnp.where(rot_valid, q_meas, qp[0]))
     y = jnp.where(rot_valid, _canonical_rotvec(quat_mul(q_safe[None, :], quat_conj(qp))), 0)
-    h = jnp.eye(3, 6, dtype=dtype)
     err, pu, s, _, ll = jax.vmap(_kf_update, (None, 0, None, None, 0))(
-        jnp.zeros(6, dtype), pp, h, r_rot, y)
+        jnp.zeros(6, dtype), pp, _measure_first3(6, dtype), r_rot, y)
     qu, pu = _recentre_each(err[:, :3], qp, pu)
     log_mu, ll = _mode_update(log_cbar, ll, rot_valid)
     ym, sm, nis = _mixture_innovation(log_cbar, y, s)

@@ -497,16 +497,21 @@ def kalman_predict(
     return _select(state.initialized, pred, moved)
 
 
-def _linear_update(x, p, y, r):
-    """Joseph-form update of ``(x, P)`` with ``H = [I3 0]``; returns ``(x, P, S, nis)``."""
-    nx = x.shape[0]
-    s = _sym(p[:3, :3] + r)
-    s_inv, _ = _spd_inverse(s)
-    gain = p[:, :3] @ s_inv  # (nx, 3) = P H^T S^-1
+def _joseph_update(x, p, h, r, y):
+    """Kalman update of ``(x, P)`` with innovation ``y``, measurement matrix ``H`` and noise
+    ``R``, covariance in Joseph form; returns ``(x, P, S, nis, log det S)``."""
+    s = _sym(h @ p @ h.T + r)
+    s_inv, log_det = _spd_inverse(s)
+    gain = (p @ h.T) @ s_inv
     x_new = x + gain @ y
-    ikh = jnp.eye(nx, dtype=x.dtype).at[:, :3].add(-gain)
+    ikh = jnp.eye(x.shape[0], dtype=x.dtype) - gain @ h
     p_new = _sym(ikh @ p @ ikh.T + gain @ r @ gain.T)
-    return x_new, p_new, s, y @ s_inv @ y
+    return x_new, p_new, s, y @ s_inv @ y, log_det
+
+
+def _measure_first3(n: int, dtype):
+    """``H = [I3 0]``: the measurement matrix of a state whose first three entries are measured."""
+    return jnp.eye(3, n, dtype=dtype)
 
 
 def kalman_update(
@@ -536,7 +541,8 @@ def kalman_update(
     # position part (safe substitute for missing data -> zero innovation, finite gradients)
     r_pos = jnp.asarray(config.pos_meas_noise, dtype) ** 2 * jnp.eye(3, dtype=dtype)
     y_pos = jnp.where(pos_valid, p_meas, state.x[:3]) - state.x[:3]
-    x_upd, p_upd, s_pos, nis_pos = _linear_update(state.x, state.P, y_pos, r_pos)
+    h_pos = _measure_first3(state.x.shape[0], dtype)
+    x_upd, p_upd, s_pos, nis_pos, _ = _joseph_update(state.x, state.P, h_pos, r_pos, y_pos)
     pos_ok = pos_valid if gate is None else pos_valid & (nis_pos <= gate)
 
     # orientation part (error state, H = [I 0])
@@ -544,7 +550,8 @@ def kalman_update(
     q_safe = quat_normalize(jnp.where(rot_valid, q_meas, state.q))
     y_rot = jnp.where(rot_valid, _canonical_rotvec(quat_mul(q_safe, quat_conj(state.q))), 0)
     err0 = jnp.zeros(6, dtype)
-    err, pr_upd, s_rot, nis_rot = _linear_update(err0, state.Pr, y_rot, r_rot)
+    err, pr_upd, s_rot, nis_rot, _ = _joseph_update(err0, state.Pr, _measure_first3(6, dtype),
+                                                    r_rot, y_rot)
     dtheta, dw = err[:3], err[3:]
     q_upd = quat_normalize(quat_mul(quat_from_rotvec(dtheta), state.q))
     g = _block(

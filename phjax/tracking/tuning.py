@@ -2,10 +2,13 @@
 
 The causal stream of :func:`phjax.track` (a ``lax.scan`` of :func:`phjax.tracker_update` over
 the camera frames, then :func:`phjax.tracker_sample` at the render times) is differentiable with
-respect to every float leaf of :class:`phjax.TrackerConfig` (the Kalman noise densities and
-measurement noise, the segment ``horizon``, the coasting times, the initial stds). This module
-scores the stream on recordings with known ground truth and tunes those leaves with
-``optimistix.BFGS``.
+respect to every float leaf of :class:`phjax.TrackerConfig` that it uses: with the IMM filter
+(the default) each motion model's log noise density, the log switch rate and the measurement
+noise; with the single-model filter its noise densities and measurement noise; and for both the
+segment ``horizon``, the coasting times and the initial stds. This module scores the stream on
+recordings with known ground truth and tunes those leaves with ``optimistix.BFGS``
+(:func:`tunable_parameters` lists them, :func:`default_parameters` gives the set tuned when
+none is named).
 
 **Data.** A ground-truth trajectory is sampled by a :class:`phjax.SensorModel` with a fixed seed
 (so the loss is a deterministic, differentiable function of the parameters), the stream is
@@ -35,7 +38,9 @@ and the loss is the mean of ``L_rec`` over recordings (orientation-only recordin
 rotation is up to the weights).
 
 **Parameters** are optimised in log space (``value = exp(y)``), which keeps them positive and
-makes the problem scale free. Note that scaling all noise densities *and* measurement stds of
+makes the problem scale free; leaves that are logarithms already (``log_*``: the IMM's model
+densities ``log_q`` and ``log_switch_rate``) and ``adapt`` (any sign) are optimised as they
+are. Note that scaling all noise densities *and* measurement stds of
 one channel by the same factor changes the filter only through the initial covariance, so
 tuning process and measurement noise together leaves a nearly flat direction; BFGS copes, but
 the individual values are less meaningful than their ratio.
@@ -48,8 +53,9 @@ differences at render rate lose most digits in float32 (the jerk terms are then 
 percent).
 
 Cost: the first loss-and-gradient evaluation compiles the differentiated stream (the scan body
-is large): about 30 s of CPU in forward mode (the default), about 85 s in reverse mode. Later
-calls with the same data shapes and parameter names reuse it.
+is large): for the single-model filter about 30 s of CPU in forward mode (the default), about
+85 s in reverse mode; for the IMM filter about 40 s in forward mode (8 default parameters).
+Later calls with the same data shapes and parameter names reuse it.
 """
 
 from __future__ import annotations
@@ -86,6 +92,8 @@ __all__ = [
     "TuningResult",
     "StepInfo",
     "tunable_parameters",
+    "default_parameters",
+    "check_parameters",
     "prepare_recordings",
     "stream_metrics",
     "loss_terms",
@@ -98,7 +106,8 @@ __all__ = [
     "load_config",
 ]
 
-#: Parameters tuned by default: the Kalman noise model and the segment horizon.
+#: Parameters tuned by default for the single-model filter (``TrackerConfig(imm=None)``): its
+#: noise model and the segment horizon. For the IMM see :func:`default_parameters`.
 DEFAULT_PARAMETERS: tuple[str, ...] = (
     "pos_process_noise",
     "rot_process_noise",
@@ -117,48 +126,120 @@ def _is_float_leaf(x) -> bool:
     return isinstance(x, float) or eqx.is_inexact_array(x)
 
 
-def _leaf_paths(config: TrackerConfig) -> list[tuple[str, ...]]:
-    """Attribute paths of the float leaves of ``config`` (PyTree order)."""
+def _key(k) -> str | int | None:
+    """A path entry: attribute name, tuple index, or ``None`` for anything else."""
+    if isinstance(k, jax.tree_util.GetAttrKey):
+        return k.name
+    if isinstance(k, jax.tree_util.SequenceKey):
+        return k.idx
+    return None
+
+
+def _unused(config: TrackerConfig) -> set:
+    """Float leaves the causal stream never reads with this configuration (zero gradient)."""
+    unused = set()
+    if config.imm is not None:  # only phjax.reconstruct reads the single-model section
+        unused.add("kalman")
+    else:
+        unused.add("adapt")  # adaptive settling reads the IMM's mode probabilities
+    if (config.kalman if config.imm is None else config.imm).order < 3:
+        unused.add("init_pos_acc_std")  # no acceleration in the state
+    return unused
+
+
+def _leaf_paths(config: TrackerConfig) -> list[tuple[str | int, ...]]:
+    """Paths (attribute names and model indices) of the float leaves the causal stream uses:
+    with an IMM filter not the single-model ``kalman`` section, with the single-model filter
+    not ``adapt``, without acceleration models not ``init_pos_acc_std``."""
+    unused = _unused(config)
     paths = []
     for path, leaf in jax.tree_util.tree_flatten_with_path(config)[0]:
-        if _is_float_leaf(leaf) and all(isinstance(k, jax.tree_util.GetAttrKey) for k in path):
-            paths.append(tuple(k.name for k in path))
+        keys = tuple(_key(k) for k in path)
+        if not _is_float_leaf(leaf) or None in keys or unused & set(keys):
+            continue
+        paths.append(keys)
     return paths
+
+
+def _dotted(path) -> str:
+    return ".".join(str(k) for k in path)
 
 
 def _names(paths) -> list[str]:
     """Short name (last attribute) when unique, else the dotted path."""
     last = [p[-1] for p in paths]
-    return [p[-1] if last.count(p[-1]) == 1 else ".".join(p) for p in paths]
+    return [p[-1] if last.count(p[-1]) == 1 else _dotted(p) for p in paths]
 
 
-def _float_leaf_paths(config: TrackerConfig) -> dict[str, tuple[str, ...]]:
+def _float_leaf_paths(config: TrackerConfig) -> dict[str, tuple[str | int, ...]]:
     """Paths of the float leaves by name: the dotted path always, the short name when unique."""
     paths = _leaf_paths(config)
-    out = {".".join(p): p for p in paths}
+    out = {_dotted(p): p for p in paths}
     out.update(zip(_names(paths), paths))
     return out
 
 
+def _is_log(path) -> bool:
+    """Leaves tuned as they are (any sign): logarithms already (``log_*``) and ``adapt``."""
+    return str(path[-1]).startswith("log_") or path[-1] == "adapt"
+
+
 def tunable_parameters(config: TrackerConfig | None = None) -> tuple[str, ...]:
-    """Names of the float leaves of a tracker configuration (the parameters one can tune).
+    """Names of the float leaves of a tracker configuration that the causal stream uses.
 
-    Discovered from the PyTree, so new float fields of :class:`~phjax.TrackerConfig` or
-    :class:`~phjax.KalmanConfig` appear automatically. Short names (``"horizon"``,
-    ``"pos_process_noise"``) are used when unique, dotted paths (``"kalman.x"``) otherwise;
-    both forms are accepted wherever a parameter name is expected.
+    Discovered from the PyTree, so new float fields appear automatically. Short names
+    (``"horizon"``, ``"log_switch_rate"``) are used when unique, dotted paths otherwise
+    (``"imm.position_models.0.log_q"``: the first position model of the IMM); both forms are
+    accepted wherever a parameter name is expected. With the IMM filter (the default) the
+    single-model ``kalman`` leaves are not listed (the causal stream does not use them).
+
+    Arguments:
+        config: the configuration (default ``TrackerConfig()``, the IMM filter).
+
+    Returns:
+        The names, in PyTree order.
     """
-    return tuple(_names(_leaf_paths(TrackerConfig(imm=None) if config is None else config)))
+    return tuple(_names(_leaf_paths(TrackerConfig() if config is None else config)))
 
 
-def _resolve(config: TrackerConfig, parameters: Sequence[str]) -> tuple[tuple[str, ...], ...]:
+def default_parameters(config: TrackerConfig | None = None) -> tuple[str, ...]:
+    """The parameters :func:`tune_tracker` tunes when none are named.
+
+    * single-model filter: :data:`DEFAULT_PARAMETERS` (its process and measurement noise, the
+      horizon);
+    * IMM filter: every model's ``log_q`` (position and rotation), ``log_switch_rate`` and the
+      ``horizon``. The measurement noise stays as configured: it is a property of the sensor
+      (known, or estimated with :func:`phjax.tracking.noise.estimate_measurement_noise`), and
+      tuned together with the process noise it leaves a nearly flat direction. Tuning may
+      reorder the models' densities; ``TrackerConfig.adapt`` assumes the quietest model first.
+
+    Arguments:
+        config: the configuration (default ``TrackerConfig()``).
+
+    Returns:
+        Parameter names accepted by :func:`make_problem` and :func:`tune_tracker`.
+    """
+    config = TrackerConfig() if config is None else config
+    if config.imm is None:
+        return DEFAULT_PARAMETERS
+    models = [f"imm.{part}.{i}.log_q" for part in ("position_models", "rotation_models")
+              for i in range(len(getattr(config.imm, part)))]
+    return (*models, "log_switch_rate", "horizon")
+
+
+def _resolve(config: TrackerConfig, parameters: Sequence[str]) -> tuple[tuple[str | int, ...], ...]:
     if isinstance(parameters, str):
         parameters = (parameters,)
     paths = _float_leaf_paths(config)
     unknown = [p for p in parameters if p not in paths]
     if unknown:
-        raise ValueError(f"unknown tracker parameter(s) {unknown}; tunable float leaves are "
-                         f"{list(tunable_parameters(config))}")
+        hint = ""
+        if config.imm is not None and set(unknown) & set(tunable_parameters(
+                TrackerConfig(imm=None, kalman=config.kalman))):
+            hint = (" (single-model filter parameters: this configuration uses the IMM; "
+                    "TrackerConfig(imm=None) selects the single-model filter)")
+        raise ValueError(f"unknown tracker parameter(s) {unknown}{hint}; tunable float leaves "
+                         f"are {list(tunable_parameters(config))}")
     if len(parameters) == 0:
         raise ValueError("no parameter to tune")
     resolved = tuple(paths[p] for p in parameters)
@@ -167,9 +248,27 @@ def _resolve(config: TrackerConfig, parameters: Sequence[str]) -> tuple[tuple[st
     return resolved
 
 
+def check_parameters(config: TrackerConfig, parameters: Sequence[str]) -> tuple[str, ...]:
+    """Validate parameter names for ``config`` (as :func:`make_problem` does, without data).
+
+    Arguments:
+        config: the configuration to tune.
+        parameters: names (short or dotted, see :func:`tunable_parameters`).
+
+    Returns:
+        The names as a tuple.
+
+    Raises:
+        ValueError: unknown, repeated or no names.
+    """
+    parameters = (parameters,) if isinstance(parameters, str) else tuple(parameters)
+    _resolve(config, parameters)
+    return parameters
+
+
 def _get(tree, path):
-    for name in path:
-        tree = getattr(tree, name)
+    for key in path:
+        tree = tree[key] if isinstance(key, int) else getattr(tree, key)
     return tree
 
 
@@ -185,8 +284,8 @@ def _arrays_config(config: TrackerConfig, dtype) -> TrackerConfig:
 def _check_positive(config: TrackerConfig, paths) -> None:
     for p in paths:
         v = _get(config, p)
-        if not np.all(np.asarray(v) > 0):
-            raise ValueError(f"{'.'.join(p)} = {v}: tuned parameters must be positive "
+        if not _is_log(p) and not np.all(np.asarray(v) > 0):
+            raise ValueError(f"{_dotted(p)} = {v}: tuned parameters must be positive "
                              "(they are optimised in log space)")
 
 
@@ -503,7 +602,11 @@ def tracker_loss(
 
 
 class TuningProblem(eqx.Module):
-    """:func:`tracker_loss` as a function of log-parameters ``y`` (``value = exp(y)``).
+    """:func:`tracker_loss` as a function of log-parameters ``y``.
+
+    ``y`` holds ``log(value)`` of each tuned leaf, except for leaves that are logarithms
+    already (named ``log_*``, e.g. the IMM's ``log_q`` and ``log_switch_rate``) and ``adapt``
+    (any sign), which ``y`` holds as they are.
 
     Fields:
         data: the recordings.
@@ -518,7 +621,7 @@ class TuningProblem(eqx.Module):
     data: TuningData
     config: TrackerConfig
     names: tuple[str, ...] = eqx.field(static=True)
-    paths: tuple[tuple[str, ...], ...] = eqx.field(static=True)
+    paths: tuple[tuple[str | int, ...], ...] = eqx.field(static=True)
     lam: Float[Array, ""]
     position_weight: Float[Array, ""]
     rotation_weight: Float[Array, ""]
@@ -531,12 +634,14 @@ class TuningProblem(eqx.Module):
 
     def params_from_config(self, config: TrackerConfig) -> Float[Array, " P"]:
         """Log-parameters of ``config``'s tuned leaves."""
-        return jnp.log(jnp.stack([jnp.asarray(_get(config, p), self.data.times.dtype)
-                                  for p in self.paths]))
+        dtype = self.data.times.dtype
+        return jnp.stack([jnp.asarray(_get(config, p), dtype) if _is_log(p)
+                          else jnp.log(jnp.asarray(_get(config, p), dtype)) for p in self.paths])
 
     def config_from_params(self, y: Float[Array, " P"]) -> TrackerConfig:
-        """The base configuration with the tuned leaves set to ``exp(y)``."""
-        return _with_values(self.config, self.paths, jnp.exp(y))
+        """The base configuration with the tuned leaves set from ``y`` (``exp(y)``, or ``y``
+        itself for ``log_*`` leaves)."""
+        return _with_values(self.config, self.paths, _leaf_values(self.paths, y, jnp))
 
     def loss_and_terms(self, y: Float[Array, " P"]) -> tuple[Float[Array, ""], Float[Array, "R 4"]]:
         """:func:`tracker_loss` at log-parameters ``y`` and the :func:`loss_terms` it combines."""
@@ -574,13 +679,18 @@ def make_problem(
     *,
     lam: float = 0.0,
     config: TrackerConfig | None = None,
-    parameters: Sequence[str] = DEFAULT_PARAMETERS,
+    parameters: Sequence[str] | None = None,
     position_weight: float = 1.0,
     rotation_weight: float = 1.0,
     normalize: bool = True,
 ) -> TuningProblem:
-    """A :class:`TuningProblem` (validates the parameter names and positivity)."""
-    config = TrackerConfig(imm=None) if config is None else config
+    """A :class:`TuningProblem` (validates the parameter names and positivity).
+
+    ``config`` defaults to ``TrackerConfig()`` (the IMM filter), ``parameters`` to
+    :func:`default_parameters` of the config; the other arguments as in :func:`tune_tracker`.
+    """
+    config = TrackerConfig() if config is None else config
+    parameters = default_parameters(config) if parameters is None else parameters
     parameters = (parameters,) if isinstance(parameters, str) else tuple(parameters)
     paths = _resolve(config, parameters)
     _check_positive(config, paths)
@@ -591,6 +701,11 @@ def make_problem(
                          jnp.asarray(lam, dtype),
                          jnp.asarray(position_weight, dtype), jnp.asarray(rotation_weight, dtype),
                          normalize)
+
+
+def _leaf_values(paths, y, xp):
+    """Leaf values from log-parameters ``y`` (``xp``: ``jnp`` inside traces, ``np`` outside)."""
+    return [y[i] if _is_log(p) else xp.exp(y[i]) for i, p in enumerate(paths)]
 
 
 # ---------------------------------------------------------------------------------- solving
@@ -763,7 +878,8 @@ class TuningResult:
 
 
 def _values(problem: TuningProblem, y) -> dict[str, float]:
-    return {n: float(v) for n, v in zip(problem.parameters, np.exp(np.asarray(y, np.float64)))}
+    y = np.asarray(y, np.float64)
+    return {n: float(v) for n, v in zip(problem.parameters, _leaf_values(problem.paths, y, np))}
 
 
 def tune_tracker(
@@ -771,7 +887,7 @@ def tune_tracker(
     *,
     lam: float = 0.3,
     config: TrackerConfig | None = None,
-    parameters: Sequence[str] = DEFAULT_PARAMETERS,
+    parameters: Sequence[str] | None = None,
     max_steps: int = 50,
     rtol: float = 1e-3,
     atol: float = 1e-4,
@@ -797,8 +913,10 @@ def tune_tracker(
             :func:`prepare_recordings` with ``prepare_kwargs`` (``sensor``, ``render_rate``,
             ``seed``, ``seconds``, ``reference_config``, ``max_gt_gap``, ``dtype``).
         lam: weight of the jerk terms (dimensionless, see the module docs).
-        config: start configuration (default ``TrackerConfig()``); untuned fields are kept.
-        parameters: names of the float leaves to tune (see :func:`tunable_parameters`).
+        config: start configuration (default ``TrackerConfig()``, the IMM filter); untuned
+            fields are kept.
+        parameters: names of the float leaves to tune (see :func:`tunable_parameters`;
+            default :func:`default_parameters` of ``config``).
         max_steps: maximum number of solver steps (loss and gradient evaluations).
         rtol, atol: BFGS termination tolerances (on the log-parameters and the loss).
         position_weight, rotation_weight, normalize: see :func:`tracker_loss`.
@@ -821,7 +939,7 @@ def tune_tracker(
         data = prepare_recordings(recordings, **prepare_kwargs)
     if max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
-    base = TrackerConfig(imm=None) if config is None else config
+    base = TrackerConfig() if config is None else config
     problem = make_problem(data, lam=lam, config=base, parameters=parameters,
                            position_weight=position_weight, rotation_weight=rotation_weight,
                            normalize=normalize)
@@ -838,7 +956,7 @@ def tune_tracker(
     y, result, steps, n_accepted, history, trials = _bfgs(
         lambda y: problem.value_and_grad(y, autodiff_mode), y0, max_steps=max_steps, rtol=rtol,
         atol=atol, callback=on_step)
-    tuned = _with_values(base, problem.paths, [float(v) for v in np.exp(np.asarray(y, np.float64))])
+    tuned = _with_values(base, problem.paths, list(_values(problem, y).values()))
     res = TuningResult(
         config=tuned,
         result=result,

@@ -92,6 +92,8 @@ BAD_ARGUMENTS = [
     (["demo", "--dropout", "1"], "argument --dropout: must be in [0, 1)"),
     (["evaluate", "FILE", "--rate", "-1"], "argument --rate: must be a positive"),
     (["tune", "FILE", "--lambda", "1", "-o", "OUT.json", "--rate", "0"], "argument --rate"),
+    (["tune", "FILE", "--lambda", "1", "-o", "OUT.json", "--parameters", "horizon,pos_process_noise"],
+     "unknown tracker parameter(s) ['pos_process_noise']"),  # the single-model filter's, not the IMM's
     (["track-rgbd", "synthetic:2", "-o", "OUT.tum", "--rate", "0"], "argument --rate"),
     (["demo-curve", "FILE", "--stride", "0"], "argument --stride: must be an integer >= 1"),
     (["smooth", "FILE", "-o", "OUT.txt", "--format", "kitti"], "argument --format: invalid choice"),

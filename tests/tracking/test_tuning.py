@@ -1,8 +1,9 @@
 """Gradient-based tuning of the causal tracker (phjax.tracking.tuning, phjax tune).
 
 Compile budget: every test that needs the differentiated stream uses recordings of the same
-shapes and the default parameter set, so the expensive program (loss + forward-mode gradient
-through the whole ``lax.scan``) is compiled once for the file and reused (also by the CLI test).
+shapes and one of two parameter sets (the single-model filter's defaults, ``KF``, and the IMM's
+defaults), so each expensive program (loss + forward-mode gradient through the whole
+``lax.scan``) is compiled once for the file and reused (the IMM one also by the CLI test).
 """
 
 import argparse
@@ -28,6 +29,7 @@ from phjax.tracking.baselines import kalman_extrapolation
 from phjax.evaluation import TUNED
 
 DURATION = 3.0  # s of synthetic head motion (the spec's "short sequence")
+KF = pj.TrackerConfig(imm=None)  # the single-model filter
 
 
 def _ground_truth():
@@ -42,7 +44,7 @@ def data():
 
 @pytest.fixture(scope="module")
 def problem(data):
-    return tuning.make_problem(data, lam=0.3)
+    return tuning.make_problem(data, lam=0.3, config=KF)
 
 
 def _y0(problem):
@@ -53,7 +55,7 @@ def _y0(problem):
 def test_terms_match_metrics_of_track_and_lambda0_is_rmse(data, problem):
     """The loss terms (own traceable stream + JAX metric twins) equal phjax.evaluation.metrics on the
     output of the public ``track``; with lam = 0 and no rotation the loss is the RMSE ratio."""
-    prob0 = tuning.make_problem(data, lam=0.0, rotation_weight=0.0)
+    prob0 = tuning.make_problem(data, lam=0.0, rotation_weight=0.0, config=KF)
     f, g, terms = prob0.value_and_grad(_y0(prob0))
     t, p, q, r = (np.asarray(x[0]) for x in (data.times, data.positions, data.quaternions,
                                              data.render_times))
@@ -73,7 +75,7 @@ def test_terms_match_metrics_of_track_and_lambda0_is_rmse(data, problem):
     assert float(f) == pytest.approx(expected[0] / ref[0], rel=1e-9)
     # and the combination rule by hand, with jerk and rotation weights
     lam, wr = 0.7, 0.5
-    prob = tuning.make_problem(data, lam=lam, rotation_weight=wr)
+    prob = tuning.make_problem(data, lam=lam, rotation_weight=wr, config=KF)
     f2, _, _ = prob.value_and_grad(_y0(prob))
     e = np.asarray(expected) / np.asarray(ref)
     assert float(f2) == pytest.approx((e[0] + lam * e[2] + wr * (e[1] + lam * e[3])) / (1 + wr),
@@ -135,9 +137,10 @@ def test_gradient_matches_central_differences(problem):
     np.testing.assert_allclose(g, central(y0, 1e-6), rtol=1e-5)
 
 
-def test_gradients_finite_with_dropouts_nan_start_and_gt_gaps(data, problem):
+@pytest.mark.parametrize("filt", ["kalman", "imm"])
+def test_gradients_finite_with_dropouts_nan_start_and_gt_gaps(data, filt):
     """Lost frames (including the first ones, so early render samples are NaN) and ground-truth
-    gaps: the loss and every gradient stay finite."""
+    gaps: the loss and every gradient stay finite (both filters, their default parameters)."""
     rng = np.random.default_rng(1)
     n, m = data.times.shape[1], data.render_times.shape[1]
     lost = rng.uniform(size=n) < 0.3
@@ -152,7 +155,9 @@ def test_gradients_finite_with_dropouts_nan_start_and_gt_gaps(data, problem):
                               gt_quaternions=gq)
     sp, _ = pj.track(*(np.asarray(x[0]) for x in (bad.times, pos, quat, bad.render_times)))
     assert np.isnan(np.asarray(sp)[0]).all()  # masked NaN samples really occur
-    f, g, terms = tuning.make_problem(bad, lam=0.3).value_and_grad(_y0(problem))
+    cfg = KF if filt == "kalman" else pj.TrackerConfig()
+    prob = tuning.make_problem(bad, lam=0.3, config=cfg)
+    f, g, terms = prob.value_and_grad(prob.params_from_config(cfg))
     assert np.isfinite(float(f)) and np.all(np.isfinite(np.asarray(g)))
     assert np.all(np.isfinite(np.asarray(terms))) and np.any(np.asarray(g) != 0)
 
@@ -203,20 +208,101 @@ def test_tuning_decreases_loss_from_bad_start(data):
 
 
 def test_parameter_discovery_and_validation(data):
-    names = tuning.tunable_parameters()
+    names = tuning.tunable_parameters(KF)
     for n in tuning.DEFAULT_PARAMETERS + ("coast_time", "stop_time", "init_pos_vel_std"):
         assert n in names
     assert "model" not in names and "gate_nis" not in names  # static fields are not tunable
+    assert tuning.default_parameters(KF) == tuning.DEFAULT_PARAMETERS
     with pytest.raises(ValueError, match="unknown tracker parameter"):
         tuning.make_problem(data, parameters=("horizon", "not_a_field"))
     with pytest.raises(ValueError, match="positive"):
         tuning.make_problem(data, config=pj.TrackerConfig(horizon=0.0), parameters=("horizon",))
-    prob = tuning.make_problem(data, parameters=("kalman.pos_meas_noise", "stop_time"))
+    prob = tuning.make_problem(data, config=KF, parameters=("kalman.pos_meas_noise", "stop_time"))
     cfg = prob.config_from_params(jnp.log(jnp.asarray([0.01, 0.2])))
     assert float(cfg.kalman.pos_meas_noise) == pytest.approx(0.01)
     assert float(cfg.stop_time) == pytest.approx(0.2)
     with pytest.raises(ValueError, match="autodiff_mode"):
         prob.value_and_grad(jnp.zeros(2), "sideways")
+
+
+# ------------------------------------------------------------------------------------- IMM
+def test_imm_parameters_are_discovered_and_log_leaves_tuned_as_they_are(data):
+    """With the IMM (the default filter) every model density and the switch rate are tunable,
+    the single-model ``kalman`` leaves (unused by the causal stream) are not, and ``log_*``
+    leaves enter the parameter vector as they are (any sign)."""
+    names = tuning.tunable_parameters()
+    models = [f"imm.{part}.{i}.log_q" for part in ("position_models", "rotation_models")
+              for i in range(3)]
+    for n in models + ["log_switch_rate", "pos_meas_noise", "rot_meas_noise", "horizon"]:
+        assert n in names
+    assert not any(n.startswith("kalman.") for n in names) and "pos_process_noise" not in names
+    assert tuning.default_parameters() == (*models, "log_switch_rate", "horizon")
+    cfg = pj.TrackerConfig(imm=dataclasses.replace(pj.TrackerConfig().imm,
+                                                   log_switch_rate=math.log(0.5)))
+    prob = tuning.make_problem(data, config=cfg, parameters=("imm.rotation_models.2.log_q",
+                                                             "log_switch_rate", "pos_meas_noise"))
+    y = np.asarray(prob.params_from_config(cfg))
+    np.testing.assert_allclose(y, [cfg.imm.rotation_models[2].log_q, math.log(0.5),
+                                   math.log(cfg.imm.pos_meas_noise)], rtol=1e-15)
+    back = prob.config_from_params(jnp.asarray([1.5, -2.0, math.log(0.007)]))
+    assert float(back.imm.rotation_models[2].log_q) == 1.5
+    assert float(back.imm.log_switch_rate) == -2.0
+    assert float(back.imm.pos_meas_noise) == pytest.approx(0.007)
+    with pytest.raises(ValueError, match="single-model filter parameters"):
+        tuning.make_problem(data, parameters=("pos_process_noise",))  # the Kalman's, not used
+    # leaves the stream never reads are not offered; adapt (any sign) is tuned as it is
+    assert "init_pos_acc_std" not in names and "adapt" in names
+    kf_names = tuning.tunable_parameters(KF)
+    assert "adapt" not in kf_names and "init_pos_acc_std" not in kf_names
+    assert "init_pos_acc_std" in tuning.tunable_parameters(
+        pj.TrackerConfig(imm=None, kalman=pj.KalmanConfig(model="ca")))
+    prob = tuning.make_problem(data, parameters=("adapt",))  # starts at 0: no log
+    assert float(prob.params_from_config(pj.TrackerConfig())[0]) == 0.0
+    assert float(prob.config_from_params(jnp.asarray([-0.4])).adapt) == -0.4
+    assert tuning.check_parameters(pj.TrackerConfig(), "horizon") == ("horizon",)
+
+
+@pytest.fixture(scope="module")
+def imm_problem(data):
+    return tuning.make_problem(data, lam=0.3)
+
+
+def test_imm_gradient_matches_central_differences(imm_problem):
+    """d loss / d parameter through the IMM stream, every default IMM parameter (six model
+    log-densities, the log switch rate, the log horizon) vs central differences, at a generic
+    point (horizon off the render grid, see the single-model test)."""
+    prob = imm_problem
+    y0 = prob.params_from_config(pj.TrackerConfig(horizon=0.0287)) + jnp.linspace(-0.2, 0.2, 8)
+    g = np.asarray(prob.value_and_grad(y0)[1])
+    h, fd = 1e-5, []
+    for i in range(y0.shape[0]):
+        e = jnp.zeros_like(y0).at[i].set(h)
+        fd.append((float(prob.value_and_grad(y0 + e)[0])
+                   - float(prob.value_and_grad(y0 - e)[0])) / (2 * h))
+    fd = np.asarray(fd)
+    assert np.all(np.isfinite(g)) and np.all(np.abs(fd) > 1e-6), fd  # every parameter matters
+    np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-8)
+
+
+def test_tune_imm_from_bad_start_and_save_load(data, imm_problem, tmp_path):
+    """Tuning the default (IMM) tracker from a poor start (densities 20x off, long horizon)
+    lowers the loss below the default configuration's in 8 steps, changes the model densities
+    and round-trips through the JSON file."""
+    imm = pj.TrackerConfig().imm
+    bad = pj.TrackerConfig(horizon=0.08, imm=dataclasses.replace(
+        imm, position_models=tuple(type(m)(log_q=m.log_q + 3) for m in imm.position_models),
+        rotation_models=tuple(type(m)(log_q=m.log_q - 3) for m in imm.rotation_models)))
+    cfg, res = tuning.tune_tracker(data, lam=0.3, config=bad, max_steps=8)
+    default_loss = float(imm_problem.value_and_grad(
+        imm_problem.params_from_config(pj.TrackerConfig()))[0])
+    assert res.final_loss < min(0.95 * res.initial_loss, default_loss), (
+        res.initial_loss, res.final_loss, default_loss)
+    assert cfg.imm.position_models[1].log_q != bad.imm.position_models[1].log_q
+    assert res.parameters["imm.position_models.1.log_q"] == cfg.imm.position_models[1].log_q
+    assert res.initial_parameters["log_switch_rate"] == 0.0  # log values reported as they are
+    assert cfg.imm.pos_meas_noise == bad.imm.pos_meas_noise  # not tuned by default
+    tuning.save_config(tmp_path / "imm.json", cfg)
+    assert tuning.load_config(tmp_path / "imm.json") == cfg
 
 
 # -------------------------------------------------------------------------------------- JSON
@@ -305,6 +391,7 @@ def test_cli_tune_writes_config_that_load_config_reads(tmp_path, capsys):
     meta = json.loads(out.read_text())["metadata"]
     assert meta["lambda"] == 0.5 and meta["steps"] == 3 and meta["train"] == [str(train)]
     assert cfg.horizon != pj.TrackerConfig().horizon  # it moved
+    assert cfg.imm is not None and cfg.imm != pj.TrackerConfig().imm  # the default: the IMM
     # --config of the other commands
     parser = argparse.ArgumentParser()
     add_config_argument(parser)
