@@ -227,7 +227,8 @@ def default_parameters(config: TrackerConfig | None = None) -> tuple[str, ...]:
     return (*models, "log_switch_rate", "horizon")
 
 
-def _resolve(config: TrackerConfig, parameters: Sequence[str]) -> tuple[tuple[str | int, ...], ...]:
+def _resolve(config: TrackerConfig, parameters: Sequence[str]) -> tuple[tuple, ...]:
+    """Attribute / index paths of the named parameters (validated)."""
     if isinstance(parameters, str):
         parameters = (parameters,)
     paths = _float_leaf_paths(config)
