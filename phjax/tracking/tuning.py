@@ -47,10 +47,12 @@ the individual values are less meaningful than their ratio.
 
 Everything traced is NaN-safe: masked samples are replaced by finite values before any
 arithmetic (double-``where`` pattern), so gradients are finite with dropped frames, render
-times before the first measurement and ground-truth gaps. The code is dtype-generic, but tune
-in float64 (``jax.config.update("jax_enable_x64", True)``; ``phjax tune`` does): third
-differences at render rate lose most digits in float32 (the jerk terms are then off by several
-percent).
+times before the first measurement and ground-truth gaps. The code is dtype-generic:
+``phjax tune`` works in float64 (``jax.config.update("jax_enable_x64", True)``), and in float32
+(JAX's default) the loss terms of the IMM stream agree with float64 within 2e-5 and the
+gradient within 1e-3, measured on 3 s and 30 s synthetic recordings (the 3 s case is tested;
+times and positions are relative to each recording's start, which keeps the third differences
+of the jerk terms accurate).
 
 Cost: the first loss-and-gradient evaluation compiles the differentiated stream (the scan body
 is large): for the single-model filter about 30 s of CPU in forward mode (the default), about
