@@ -643,7 +643,7 @@ class TuningProblem(eqx.Module):
 
     def config_from_params(self, y: Float[Array, " P"]) -> TrackerConfig:
         """The base configuration with the tuned leaves set from ``y`` (``exp(y)``, or ``y``
-        itself for ``log_*`` leaves)."""
+        itself for ``log_*`` leaves and ``adapt``)."""
         return _with_values(self.config, self.paths, _leaf_values(self.paths, y, jnp))
 
     def loss_and_terms(self, y: Float[Array, " P"]) -> tuple[Float[Array, ""], Float[Array, "R 4"]]:
