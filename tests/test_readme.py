@@ -48,6 +48,8 @@ def test_readme_has_python_blocks_and_setup_commands():
         next(x for x in lines if x.startswith("# (b)")))
     assert "pip install -e" in lines[a + 1] and lines[a + 1].rstrip().endswith("phjax demo")
     assert "pip install -e" in lines[b + 1] and "pytest" in lines[b + 1]
+    # the real-time tests skip in xdist workers (tests/conftest.py): the command runs them alone
+    assert lines[b + 1].rstrip().endswith("python -m pytest -q -m serial")
 
 
 @pytest.mark.slow

@@ -40,6 +40,7 @@ def _gt_opentrack(times):
 
 
 @pytest.mark.slow
+@pytest.mark.serial
 def test_acceptance_synthetic_opentrack(listener, model_cache, tmp_path, cli_jax_config, capsys):  # noqa: F811
     """phjax live synthetic:240 --output opentrack://127.0.0.1:PORT --rate 120 --duration 6."""
     log = tmp_path / "sent.tum"
