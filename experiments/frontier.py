@@ -64,7 +64,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from devset import load_devset  # noqa: E402
 
 from phjax.evaluation.metrics import rms_jerk_position, rms_jerk_rotation  # noqa: E402
-from phjax.motion.resample import interpolate_poses  # noqa: E402
+from phjax.motion.resample import interpolate_poses, snap_to_frames  # noqa: E402
 from phjax.motion.simulate import SensorModel, simulate_measurements  # noqa: E402
 from phjax.tracking import baselines, tuning  # noqa: E402
 from phjax.tracking.imm import IMMConfig  # noqa: E402
@@ -74,6 +74,10 @@ from phjax.tracking.tracker import TrackerConfig, track  # noqa: E402
 
 RATE, RENDER, WARMUP = 30.0, 120.0, 1.0
 LAGS = np.arange(-0.03, 0.1201, 0.002)
+
+
+#: version of the cached simulated data (2: render times snapped onto coincident frame times)
+DATA_VERSION = 2
 
 
 # --------------------------------------------------------------------------------------- data
@@ -97,7 +101,8 @@ def prepare(seconds: float, cache: Path, quick: bool, phase: float = 0.0):
             print(f"skip {name}: {mt.shape[0]} frames < {n}")
             continue
         mt, mp, mq = mt[:n], mp[:n], mq[:n]
-        r = mt[0] + WARMUP + (np.arange(m) + phase) / RENDER
+        # render samples at a frame's instant see that frame, whatever the rounding
+        r = snap_to_frames(mt, mt[0] + WARMUP + (np.arange(m) + phase) / RENDER)
         gp, gq = (np.asarray(x) for x in interpolate_poses(t, p, q, r, max_gap=0.1))
         # ground truth shifted by every candidate lag (for the lag metric)
         sp, sq = (np.asarray(x) for x in interpolate_poses(
@@ -176,20 +181,8 @@ def tune_imm(data, idx, start: TrackerConfig, reference: KalmanConfig, steps: in
     """Tune ``start``'s IMM models and switch rate by BFGS through the causal stream on the
     recordings ``idx`` (their simulated frames as scored here; RMSE only, each channel relative
     to the Kalman CV extrapolation with ``reference``). Returns ``(IMMConfig, TuningResult)``."""
-    cols = {k: [] for k in ("t", "p", "q", "r", "gp", "gq", "ref")}
-    for i in idx:
-        d = data[i]
-        mp = d["mp"]
-        if not d["has_pos"]:  # orientation only: a fixed point, as phjax.track does
-            mp = np.where(np.isfinite(d["mq"]).all(-1, keepdims=True), 0.0, np.nan) * np.ones(3)
-        rp, rq = baselines.kalman_extrapolation(d["mt"], mp, d["mq"], d["r"], config=reference)
-        ref = np.asarray(tuning.stream_metrics(d["r"], rp, rq, d["gp"], d["gq"]))
-        for k, v in zip(cols, (d["mt"], mp, d["mq"], d["r"], d["gp"], d["gq"],
-                               np.where(ref > 0, ref, np.nan))):
-            cols[k].append(np.asarray(v, np.float64))
-    st = {k: jax.numpy.asarray(np.stack(v)) for k, v in cols.items()}
-    tdata = tuning.TuningData(st["t"], st["p"], st["q"], st["r"],
-                              jax.numpy.ones(st["r"].shape, bool), st["gp"], st["gq"], st["ref"])
+    tdata = tuning.tuning_data([tuple(data[i][k] for k in ("mt", "mp", "mq", "r", "gp", "gq"))
+                                for i in idx], reference_config=reference)
     params = [n for n in tuning.default_parameters(start) if n != "horizon"]
     cfg, res = tuning.tune_tracker(tdata, lam=0.0, config=start, parameters=params,
                                    max_steps=steps)
@@ -275,7 +268,8 @@ def main(argv=None):
         plot(out)
         return 0
     t0 = time.time()
-    tag = f"{args.seconds:g}{'_quick' if args.quick else ''}_phase{args.render_phase:g}"
+    tag = (f"{args.seconds:g}{'_quick' if args.quick else ''}_phase{args.render_phase:g}"
+           f"_v{DATA_VERSION}")
     data = prepare(args.seconds, out / f"data_{tag}.npz", args.quick, args.render_phase)
     names = [d["name"] for d in data]
     train = [i for i in range(len(data)) if i % 2 == 0]

@@ -2,6 +2,7 @@
 
     python experiments/real_stream.py        # Markdown table (about 3 min on 1 CPU core)
     python experiments/real_stream.py --ml   # also the maximum-likelihood IMM noise (+1 min)
+    python experiments/real_stream.py --tune # also gradient tuning on the stream (+6 min)
 
 evo's absolute pose error (:class:`evo.core.metrics.APE`, translation part, after evo's SE(3)
 Umeyama alignment ``PoseTrajectory3D.align(correct_scale=False)`` of the poses associated by
@@ -18,8 +19,16 @@ Umeyama alignment ``PoseTrajectory3D.align(correct_scale=False)`` of the poses a
 each with the default configuration (sensor noise 5 mm / 1 degree) and with the measurement
 noise estimated from the recording itself (:func:`phjax.tracking.estimate_measurement_noise`,
 put into the config by :func:`phjax.tracking.with_measurement_noise`) and, with ``--ml``, with
-maximum-likelihood IMM noise (:func:`ml_imm_config`). No number in it is tuned to this file. evo's RMSE, mean and std (the APE of the raw estimate has std 6.07 mm, the "6.1 mm"
-of issue 16) are printed.
+maximum-likelihood IMM noise (:func:`ml_imm_config`). No number in it is tuned to this file.
+evo's RMSE, mean and std (the APE of the raw estimate has std 6.07 mm, the "6.1 mm" of issue 16)
+are printed.
+
+With ``--tune``, :func:`tune_split` tunes the tracker by gradient on the real stream itself
+(:func:`phjax.tracking.tuning.measured_recording` moves the estimate into the ground truth's frame
+by an SE(3) alignment like evo's, :func:`phjax.tracking.tuning.tuning_data`,
+:func:`phjax.tune_tracker`) on the first half of the recording and
+scores the default and the tuned configuration on the second half, each term relative to the
+tuned Kalman CV extrapolation on the same half.
 """
 
 from __future__ import annotations
@@ -123,6 +132,44 @@ def ml_imm_config(t, p, q, base: IMMConfig | None = None) -> IMMConfig:
     return make(sol.value)
 
 
+#: parameters of :func:`tune_split`: the IMM defaults and the measurement noise (the SLAM
+#: estimate's noise is not the default sensor's)
+TUNE_PARAMETERS = ("imm.pos_meas_noise", "imm.rot_meas_noise")
+
+
+def tune_split(steps: int = 20, lams=(0.3, 0.0)) -> dict[str, tuple]:
+    """Tune on the first half of the stream for each ``lambda``, score on the second (see the
+    module docstring).
+
+    Returns:
+        ``{"default": (terms, None), "tuned, lambda L": (terms, parameters), ...}``: the test
+        half's ``[E_p, E_r, J_p, J_r]`` divided by the Kalman CV reference's, and the tuned
+        parameter values.
+    """
+    from phjax.tracking import tuning
+
+    gt, est = load()
+    # the whole stream in the ground truth's frame (one rigid transform), then split in time
+    t, p, q, *_ = tuning.measured_recording(gt, est, align=True)
+    first = t < 0.5 * (t[0] + t[-1])
+    train, test = (tuning.tuning_data([tuning.measured_recording(gt, (t[k], p[k], q[k]))])
+                   for k in (first, ~first))
+    start = TrackerConfig()
+    params = tuning.default_parameters(start) + TUNE_PARAMETERS
+
+    def score(cfg):
+        return np.asarray(tuning.loss_terms(cfg, test)[0] / test.reference[0])
+
+    out = {"default": (score(start), None)}
+    for lam in lams:  # one compilation serves every lambda
+        tuned, res = tuning.tune_tracker(train, lam=lam, config=start, parameters=params,
+                                         max_steps=steps)
+        print(f"lambda {lam:g}: tuned on the first half ({res.message}, {res.num_steps} steps, "
+              f"train loss {res.initial_loss:.4f} -> {res.final_loss:.4f})", flush=True)
+        out[f"tuned, lambda {lam:g}"] = (score(tuned), res.parameters)
+    return out
+
+
 def evaluate(ml: bool = False) -> dict[str, dict]:
     """evo APE statistics of every stream (see the module docstring)."""
     from phjax.tracking.baselines import hold, imm_extrapolation
@@ -164,6 +211,15 @@ def main() -> int:
     for k, v in res.items():
         print(f"| {k} | {v['rmse'] * 1e3:.2f} | {v['mean'] * 1e3:.2f} | {v['std'] * 1e3:.2f} "
               f"| {v['max'] * 1e3:.1f} |")
+    if "--tune" in sys.argv[1:]:
+        out = tune_split()
+        print("\nsecond half, phjax / tuned Kalman CV extrapolation\n\n"
+              "| config | pos RMSE | rot RMSE | pos jerk | rot jerk |\n|---|---|---|---|---|")
+        for name, (v, _) in out.items():
+            print(f"| {name} | " + " | ".join(f"{x:.3f}" for x in v) + " |")
+        for name, (_, params) in out.items():
+            if params:
+                print(f"\n{name}:", {k: float(f"{v:.4g}") for k, v in params.items()})
     return 0
 
 

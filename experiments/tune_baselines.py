@@ -28,9 +28,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from devset import load_devset  # noqa: E402
 
 from phjax.tracking import baselines  # noqa: E402
+from phjax.tracking.baselines import TUNED  # noqa: E402
 from phjax.tracking.kalman import KalmanConfig  # noqa: E402
 from phjax.evaluation.metrics import position_rmse, rms_jerk_position, rms_jerk_rotation, rotation_rmse_deg  # noqa: E402
-from phjax.motion.resample import interpolate_poses  # noqa: E402
+from phjax.motion.resample import interpolate_poses, snap_to_frames  # noqa: E402
 from phjax.motion.simulate import SensorModel, simulate_measurements  # noqa: E402
 from phjax.tracking.tracker import TrackerConfig, track  # noqa: E402
 
@@ -41,7 +42,8 @@ def prepare(seqs, seed=0, rate=120.0):
         t = t - t[0]
         mt, mp, mq = (np.asarray(x, np.float64) for x in simulate_measurements(seed, t, p, q, SensorModel()))
         ok = np.isfinite(mq).all(-1)
-        r = np.arange(mt[ok][0] + 1 / 30, t[-1], 1 / rate)
+        # render samples at a frame's instant see that frame, whatever the rounding
+        r = snap_to_frames(mt, np.arange(mt[ok][0] + 1 / 30, t[-1], 1 / rate))
         gp, gq = (np.asarray(x) for x in interpolate_poses(t, p, q, r, max_gap=0.1))
         out.append(dict(name=name, kind=kind, mt=mt, mp=mp, mq=mq, r=r, gp=gp, gq=gq,
                         has_pos=bool(np.isfinite(p).any())))
@@ -72,8 +74,8 @@ def main(argv=None):
     ap.add_argument("--seconds", type=float, default=30.0, help="length of each sequence used")
     ap.add_argument("--out", default="results/tuning", help="output folder")
     ap.add_argument("--horizon-only", action="store_true",
-                    help="skip the baseline grids; trade-off curve of the phjax horizon with the "
-                         "default (already tuned) KalmanConfig")
+                    help="skip the baseline grids; trade-off curve of the default tracker's "
+                         "horizon against the Kalman CV extrapolation with TUNED['kalman']")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -83,8 +85,8 @@ def main(argv=None):
               f"{len(data)} sequences, {args.seconds:g} s each, default sensor model, 120 Hz render.", ""]
 
     if args.horizon_only:
-        d = KalmanConfig()
-        return horizon_tradeoff(data, d.pos_process_noise, d.rot_process_noise, report, out)
+        d = TUNED["kalman"]
+        return horizon_tradeoff(data, d["pos_process_noise"], d["rot_process_noise"], report, out)
 
     # Kalman CV: position and rotation noise densities (independent parts)
     qs_p = [0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0]
@@ -123,15 +125,16 @@ def main(argv=None):
 
 
 def horizon_tradeoff(data, best_qp, best_qr, report, out, extra=None):
-    """phjax with the tuned filter: RMSE and jerk ratios to Kalman CV for a range of horizons."""
+    """The default tracker (IMM filter) at a range of horizons: RMSE and jerk ratios to the
+    Kalman CV extrapolation with noise ``best_qp`` / ``best_qr``."""
     kcfg = KalmanConfig(pos_process_noise=best_qp, rot_process_noise=best_qr)
     kf_rows = scores(data, lambda t, p, q, r: baselines.kalman_extrapolation(t, p, q, r, config=kcfg))
-    report += ["## phjax horizon trade-off (tuned filter)", "",
+    report += ["## phjax horizon trade-off (default IMM tracker)", "",
                "ratios to the tuned Kalman CV extrapolation, mean over sequences", "",
                "| horizon [s] | pos RMSE | rot RMSE | pos jerk | rot jerk |", "|---|---|---|---|---|"]
     trade = {}
     for h in [0.015, 0.02, 0.025, 0.028, 0.03, 0.035, 0.05, 0.067, 0.1]:
-        cfg = TrackerConfig(kalman=kcfg, horizon=h)
+        cfg = TrackerConfig(horizon=h)
         rows = scores(data, lambda t, p, q, r, cfg=cfg: track(t, p, q, r, config=cfg))
         trade[h] = [rel(rows, kf_rows, k) for k in ("pos", "rot", "jp", "jr")]
         report.append(f"| {h:g} | " + " | ".join(f"{v:.3f}" for v in trade[h]) + " |")

@@ -121,15 +121,23 @@ def cmd_tune(args) -> int:
     from ..tracking.tuning import (
         check_parameters,
         default_parameters,
+        measured_recording,
         prepare_recordings,
         save_config,
         tune_tracker,
+        tuning_data,
     )
 
     if args.max_steps < 1:
         raise ValueError(f"--max-steps must be >= 1, got {args.max_steps}")
     if not args.lam >= 0:
         raise ValueError(f"--lambda must be non-negative, got {args.lam}")
+    if args.measured and len(args.measured) != len(args.train):
+        raise ValueError(f"--measured: give one measurement file per ground-truth file, got "
+                         f"{len(args.measured)} for {len(args.train)}")
+    if args.align and not args.measured:
+        raise ValueError("--align needs --measured (simulated measurements are in the ground "
+                         "truth's frame)")
     start = config_from_args(args)
     start = TrackerConfig() if start is None else start
     params = default_parameters(start) if not args.parameters else tuple(
@@ -141,13 +149,29 @@ def cmd_tune(args) -> int:
                          sigma_r=float(np.deg2rad(args.sigma_r)), dropout=args.dropout,
                          jitter=args.jitter)
     t0 = time.perf_counter()
-    data = prepare_recordings(trajs, sensor=sensor, render_rate=args.rate, seed=args.seed,
-                              seconds=args.seconds)
+    first = f"; first {args.seconds:g} s" if args.seconds else ""
+    if args.measured:
+        recs = []
+        for gt_file, gt, f in zip(args.train, trajs, args.measured):
+            try:
+                recs.append(measured_recording(gt, read_input(f, args.format),
+                                               render_rate=args.rate, seconds=args.seconds,
+                                               align=args.align))
+            except ValueError as err:
+                raise ValueError(f"{f} (against {gt_file}): {err}") from None
+        data = tuning_data(recs)
+        source = (f"measurements: {', '.join(Path(f).name for f in args.measured)}"
+                  + (" (rigidly aligned to the ground truth)" if args.align else "")
+                  + f"; render {args.rate:g} Hz{first}")
+    else:
+        data = prepare_recordings(trajs, sensor=sensor, render_rate=args.rate, seed=args.seed,
+                                  seconds=args.seconds)
+        source = (f"sensor: {args.camera_rate:g} Hz, sigma_p {args.sigma_p:g} mm, sigma_r "
+                  f"{args.sigma_r:g} deg, dropout {100 * args.dropout:g} %, jitter "
+                  f"{args.jitter:g}, seed {args.seed}; render {args.rate:g} Hz{first}")
     names = [Path(f).name for f in args.train]
     print(f"# phjax tune: {len(trajs)} recording(s), lambda {args.lam:g}")
-    print(f"sensor: {args.camera_rate:g} Hz, sigma_p {args.sigma_p:g} mm, sigma_r {args.sigma_r:g} "
-          f"deg, dropout {100 * args.dropout:g} %, jitter {args.jitter:g}, seed {args.seed}; "
-          f"render {args.rate:g} Hz" + (f"; first {args.seconds:g} s" if args.seconds else ""))
+    print(source)
     print(f"parameters: {', '.join(params)}")
     print(f"prepared in {time.perf_counter() - t0:.1f} s; the first step compiles the "
           "differentiated stream (about a minute)", flush=True)
@@ -169,9 +193,11 @@ def cmd_tune(args) -> int:
         "train": [str(f) for f in args.train],
         "seconds": args.seconds,
         "render_rate": args.rate,
-        "sensor": {"rate": args.camera_rate, "sigma_p_mm": args.sigma_p,
-                   "sigma_r_deg": args.sigma_r, "dropout": args.dropout, "jitter": args.jitter,
-                   "seed": args.seed},
+        "measured": [str(f) for f in args.measured] if args.measured else None,
+        "align": bool(args.align),
+        "sensor": None if args.measured else {
+            "rate": args.camera_rate, "sigma_p_mm": args.sigma_p, "sigma_r_deg": args.sigma_r,
+            "dropout": args.dropout, "jitter": args.jitter, "seed": args.seed},
         "parameters": list(params),
         "status": res.message,
         "steps": res.num_steps,
@@ -205,8 +231,8 @@ def add_commands(sub) -> None:
     """Register ``phjax tune`` on the sub-parser collection ``sub``."""
     p = sub.add_parser(
         "tune", help="tune the causal tracker's parameters by gradient descent on recordings",
-        description="Simulate the sensor on ground-truth trajectory files, differentiate the "
-        "whole causal stream with respect to the tracker's parameters (by default the IMM "
+        description="Simulate the sensor on ground-truth trajectory files (or read the real "
+        "pose streams given by --measured), differentiate the whole causal stream with respect to the tracker's parameters (by default the IMM "
         "filter's model noise densities and switch rate and the segment horizon; log "
         "parameterisation) and minimise RMSE + lambda x RMS jerk (position and "
         "rotation, each relative to the tuned Kalman constant-velocity extrapolation, so lambda "
@@ -233,6 +259,15 @@ def add_commands(sub) -> None:
     p.add_argument("--rotation-weight", type=float, default=1.0,
                    help="weight of the rotation terms (default 1)")
     add_config_argument(p)
+    m = p.add_argument_group("real measurements (instead of the simulated sensor)")
+    m.add_argument("--measured", nargs="+", metavar="EST", default=None,
+                   help="pose-stream file(s) the tracker sees (e.g. a SLAM or head-pose "
+                   "estimate), one per ground-truth file and in the same order, on the ground "
+                   "truth's clock; the sensor options below, except --rate, are then unused")
+    m.add_argument("--align", action="store_true",
+                   help="move each --measured stream into its ground truth's frame by the rigid "
+                   "transform that best maps its positions onto the ground truth (SE(3) "
+                   "least squares, as evo's APE alignment); without it the frames must agree")
     g = p.add_argument_group("sensor model and rendering")
     add_sensor_arguments(g, "random seed of the sensor simulation")
     p.set_defaults(func=cmd_tune)

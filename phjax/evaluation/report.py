@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..motion.resample import interpolate_poses
+from ..motion.resample import interpolate_poses, snap_to_frames
 from ..motion.simulate import SensorModel, simulate_measurements
 from ..tracking import baselines
 from ..tracking.baselines import TUNED
@@ -160,12 +160,14 @@ def evaluate_recording(
     gt_t = gt_times - origin
     gt_p = np.asarray(gt_positions, np.float64)
     gt_q = np.asarray(gt_quaternions, np.float64)
-    mt, mp, mq = (np.asarray(x, np.float64) for x in simulate_measurements(seed, gt_t, gt_p, gt_q, sensor))
+    frames = simulate_measurements(seed, gt_t, gt_p, gt_q, sensor)
+    mt, mp, mq = (np.asarray(x, np.float64) for x in frames)
     valid = np.isfinite(mq).all(-1)
     if not np.any(valid):
         raise ValueError("the simulated sensor produced no valid measurement")
     start = mt[valid][0] + 1.0 / sensor.rate  # let every method see at least one frame
-    render = np.arange(start, gt_t[-1], 1.0 / render_rate)
+    # a sample at a frame's own instant sees that frame, whatever the rounding of the clocks
+    render = snap_to_frames(np.asarray(frames[0]), np.arange(start, gt_t[-1], 1.0 / render_rate))
     gp, gq = interpolate_poses(gt_t, gt_p, gt_q, render, max_gap=max_gt_gap)
     gp, gq = np.asarray(gp, np.float64), np.asarray(gq, np.float64)
     iterator = methods

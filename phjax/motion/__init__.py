@@ -6,7 +6,7 @@
   aware) and finite-difference velocities.
 """
 
-from .resample import finite_difference_velocities, interpolate_poses, valid_rows
+from .resample import finite_difference_velocities, interpolate_poses, snap_to_frames, valid_rows
 from .simulate import SensorModel, simulate_measurements, synthetic_head_motion
 
 __all__ = [

@@ -94,6 +94,11 @@ BAD_ARGUMENTS = [
     (["tune", "FILE", "--lambda", "1", "-o", "OUT.json", "--rate", "0"], "argument --rate"),
     (["tune", "FILE", "--lambda", "1", "-o", "OUT.json", "--parameters", "horizon,pos_process_noise"],
      "unknown tracker parameter(s) ['pos_process_noise']"),  # the single-model filter's, not the IMM's
+    (["tune", "FILE", "--lambda", "1", "-o", "OUT.json", "--measured", "FILE", "FILE"],
+     "--measured: give one measurement file per ground-truth file, got 2 for 1"),
+    (["tune", "FILE", "--lambda", "1", "-o", "OUT.json", "--align"], "--align needs --measured"),
+    (["tune", "FILE", "--lambda", "1", "-o", "OUT.json", "--measured", "FILE"],
+     "overlap for too short a time"),  # a two-pose file: no render samples
     (["track-rgbd", "synthetic:2", "-o", "OUT.tum", "--rate", "0"], "argument --rate"),
     (["demo-curve", "FILE", "--stride", "0"], "argument --stride: must be an integer >= 1"),
     (["smooth", "FILE", "-o", "OUT.txt", "--format", "kitti"], "argument --format: invalid choice"),

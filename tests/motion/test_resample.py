@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation, Slerp
 
 from phjax.quaternion import quat_from_rotvec, quat_geodesic_distance, quat_mul
-from phjax.motion.resample import finite_difference_velocities, interpolate_poses
+from phjax.motion.resample import finite_difference_velocities, interpolate_poses, snap_to_frames
 
 
 def _wxyz(r: Rotation) -> np.ndarray:
@@ -160,3 +160,32 @@ def test_world_frame_angular_velocity_of_composed_rotation():
     _, w = finite_difference_velocities(t, np.zeros((len(t), 3)), _wxyz(rot))
     ref = a * np.array([0, 0, 1.0]) + rz.apply([b, 0, 0])
     np.testing.assert_allclose(w, ref, atol=1e-5)
+
+
+@pytest.mark.parametrize("t0", [0.0, 0.37, 1.3e9])
+def test_snap_to_frames_makes_coincident_clocks_exact(t0):
+    """A 120 Hz render clock and a 30 Hz frame clock built as separate sums meet every 4th
+    sample only up to rounding (either side); after snapping they meet exactly, every other
+    sample is untouched, and a searchsorted(side="right") then sees the frame at its instant."""
+    frames = t0 + np.arange(90) / 30.0
+    render = frames[1] + np.arange(300) / 120.0
+    coincide = np.arange(300) % 4 == 0
+    off = render[coincide] - frames[1 + np.arange(coincide.sum())]
+    assert t0 or np.any(off != 0)  # the sums do round differently
+    snapped = snap_to_frames(frames, render)
+    np.testing.assert_array_equal(snapped[coincide], frames[1:1 + coincide.sum()])
+    np.testing.assert_array_equal(snapped[~coincide], render[~coincide])
+    seen = np.searchsorted(frames, snapped, side="right") - 1
+    np.testing.assert_array_equal(seen[coincide], 1 + np.arange(coincide.sum()))
+    assert snapped.dtype == np.float64
+
+
+def test_snap_to_frames_float32_frame_times_and_far_samples():
+    frames32 = (np.arange(40) / np.float32(30.0)).astype(np.float32)  # e.g. simulated without x64
+    render = np.float64(1 / 30) + np.arange(100) / 120.0
+    snapped = snap_to_frames(frames32, render)
+    np.testing.assert_array_equal(snapped[::4], frames32[1:26].astype(np.float64))
+    # 1 us off a frame (float64 frames): a real offset, not rounding
+    np.testing.assert_array_equal(snap_to_frames(np.array([0.0, 1.0]), [1.0 + 1e-6]), [1.0 + 1e-6])
+    # before the first and after the last frame
+    np.testing.assert_array_equal(snap_to_frames(np.array([1.0, 2.0]), [0.5, 2.5]), [0.5, 2.5])

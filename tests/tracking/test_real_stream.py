@@ -90,3 +90,47 @@ def test_estimated_noise_separates_slam_from_mocap(data):
     assert 0.0005 < float(slam.pos_meas_noise) < 0.004
     assert float(mocap.pos_meas_noise) < 0.2 * float(slam.pos_meas_noise)
     assert np.degrees(float(slam.rot_meas_noise)) < 0.5
+
+
+def test_tuning_data_on_the_real_stream_scores_like_track(data):
+    """The estimate moved into the ground truth's frame by measured_recording's rigid
+    alignment (checked against evo's APE), 8 s of it as tuning_data: the loss terms equal
+    phjax.evaluation.metrics of the public ``track`` at the render times (at the file's 1.3e9 s
+    Unix times), the reference terms those of the tuned Kalman CV extrapolation."""
+    import math
+
+    from phjax.evaluation import TUNED, metrics
+    from phjax.motion.resample import interpolate_poses
+    from phjax.tracking import tuning
+    from phjax.tracking.baselines import kalman_extrapolation
+    from phjax.tracking.kalman import KalmanConfig
+    from phjax.tracking.tracker import TrackerConfig, track
+
+    gt, (t, p, q), raw = data
+    # phjax's rigid alignment (phjax.vision.alignment.align) agrees with evo's: the aligned
+    # estimate's error against the ground truth at its own times is the APE of evo
+    t, p, q, r, gp, gq = tuning.measured_recording(gt, (t, p, q), align=True)
+    at_frames, _ = interpolate_poses(gt.times, gt.positions, gt.quaternions, t)
+    err = np.linalg.norm(p - np.asarray(at_frames), axis=-1)
+    assert np.sqrt(np.mean(err**2)) == pytest.approx(raw["rmse"], rel=0.02)
+    t, p, q, r, gp, gq = tuning.measured_recording(gt, (t, p, q), seconds=8.0)
+    d = tuning.tuning_data([(t, p, q, r, gp, gq)])
+    cfg = TrackerConfig()
+    terms = np.asarray(tuning.loss_terms(cfg, d)[0])
+    sp, sq = (np.asarray(x) for x in track(t, p, q, r, config=cfg, dtype=jnp.float64))
+    ok = np.isfinite(gp).all(-1)
+    score = lambda sp, sq: [metrics.position_rmse(sp[ok], gp[ok]).value,  # noqa: E731
+                            math.radians(metrics.rotation_rmse_deg(sq[ok], gq[ok]).value),
+                            metrics.rms_jerk_position(r, sp).value,
+                            metrics.rms_jerk_rotation(r, sq).value]
+    expected = score(sp, sq)
+    np.testing.assert_allclose(terms[:2], expected[:2], rtol=1e-6)
+    # jerk: third differences of track's output at 1.3e9 s carry rounding; tuning_data's are
+    # relative to the first frame
+    np.testing.assert_allclose(terms[2:], expected[2:], rtol=1e-4)
+    rp, rq = (np.asarray(x) for x in kalman_extrapolation(
+        t, p, q, r, config=KalmanConfig(**TUNED["kalman"])))
+    np.testing.assert_allclose(np.asarray(d.reference[0][:2]), score(rp, rq)[:2], rtol=1e-6)
+    # real SLAM noise is centimetre level (the raw APE is 13.5 mm over the whole file)
+    assert 0.005 < terms[0] < 0.05 and np.isfinite(terms).all()
+    print("phjax / Kalman CV terms:", terms / np.asarray(d.reference[0]))

@@ -417,6 +417,25 @@ def test_cli_tune_writes_config_that_load_config_reads(tmp_path, capsys):
         config_from_args(parser.parse_args(["--config", str(tmp_path / "missing.json")]))
 
 
+def test_cli_tune_on_a_real_slam_stream(tmp_path, capsys):
+    """phjax tune GT --measured EST --align: TUM fr1_xyz's RGBDSLAM estimate (another frame,
+    real noise) against its ground truth; the horizon is tuned, the metadata say so."""
+    from conftest import shared_path
+
+    base = shared_path("tum_rgbd_groundtruth")
+    gt = base / "fr1_xyz-groundtruth.txt"
+    est = base / "estimates" / "fr1_xyz-rgbdslam_estimate.txt"
+    out = tmp_path / "params.json"
+    argv = ["tune", str(gt), "--measured", str(est), "--align", "--lambda", "0.3", "-o",
+            str(out), "--max-steps", "2", "--seconds", "3", "--parameters", "horizon"]
+    assert _cli(argv) == 0
+    text = capsys.readouterr().out
+    assert "rigidly aligned" in text and "step   2" in text and "fr1_xyz-groundtruth.txt" in text
+    meta = json.loads(out.read_text())["metadata"]
+    assert meta["measured"] == [str(est)] and meta["align"] and meta["sensor"] is None
+    assert tuning.load_config(out).horizon != pj.TrackerConfig().horizon
+
+
 def test_loss_terms_take_batch_axes_and_nan_padding():
     """The loss on the same recordings with extra leading axes and with NaN padding (padding
     frames with NaN times, padded render times NaN) equals the loss on the prepared data."""
@@ -446,3 +465,97 @@ def test_loss_terms_take_batch_axes_and_nan_padding():
     same = tuning.prepare_recordings(padded)
     for a, b in zip(jax.tree.leaves(same), jax.tree.leaves(data)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+# ------------------------------------------------------------------ given measurements (real)
+def _simulated(gt, seed, rate=120.0):
+    """What prepare_recordings simulates, as tuning_data's input."""
+    t, p, q = (np.asarray(x) for x in gt)
+    t = t - t[0]
+    mt, mp, mq = (np.asarray(x) for x in pj.simulate_measurements(seed, t, p, q, pj.SensorModel()))
+    ok = np.isfinite(mq).all(-1)
+    r = np.arange(mt[ok][0] + 1 / 30, t[-1], 1 / rate)
+    gp, gq = (np.asarray(x) for x in pj.motion.resample.interpolate_poses(t, p, q, r, max_gap=0.1))
+    return mt, mp, mq, r, gp, gq
+
+
+def test_tuning_data_of_simulated_frames_equals_prepare_recordings(data):
+    got = tuning.tuning_data([_simulated(_ground_truth(), 0)])
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(data)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-15)
+
+
+def test_tuning_data_is_relative_so_unix_times_and_far_positions_survive_float32():
+    """A recording at Unix time 1.3e9 s, 100 m from the origin, prepares the same relative
+    arrays and reference terms as at the origin, also in float32 (no 128 s rounding of
+    float32 timestamps, no 8 um position steps)."""
+    rec = _simulated(pj.synthetic_head_motion(duration=1.5, rate=120.0, seed=2), 1)
+    t0, x0 = 1.3e9, np.array([100.0, -40.0, 7.0])
+    far = (rec[0] + t0, rec[1] + x0, rec[2], rec[3] + t0, rec[4] + x0, rec[5])
+    near = tuning.tuning_data([rec])
+    for dtype, tol in ((jnp.float64, 1e-6), (jnp.float32, 2e-5)):
+        got = tuning.tuning_data([far], dtype=dtype)
+        assert got.times.dtype == dtype
+        for name in ("times", "positions", "render_times", "gt_positions"):
+            np.testing.assert_allclose(np.asarray(getattr(got, name), np.float64),
+                                       np.asarray(getattr(near, name)), atol=tol, err_msg=name)
+        np.testing.assert_allclose(np.asarray(got.reference, np.float64), near.reference,
+                                   rtol=1e-3, err_msg=dtype.__name__)
+
+
+def test_tuning_data_orientation_only_and_errors():
+    rec = list(_simulated(pj.synthetic_head_motion(duration=1.0, rate=120.0, seed=3), 0))
+    rec[1] = np.full_like(rec[1], np.nan)
+    rec[4] = np.full_like(rec[4], np.nan)
+    d = tuning.tuning_data([tuple(rec)])
+    # a fixed point where the orientation is measured; no position reference
+    ok = np.isfinite(rec[2]).all(-1)
+    np.testing.assert_array_equal(np.asarray(d.positions[0][ok]), 0.0)
+    ref = np.asarray(d.reference[0])
+    assert np.isnan(ref[[0, 2]]).all() and np.isfinite(ref[[1, 3]]).all()
+    cases = [
+        ([], "at least one recording"),
+        ([tuple(rec[:5])], "expected (times"),
+        ([(rec[0], rec[1][:-1], *rec[2:])], "shapes must be"),
+        ([(rec[0][::-1], *rec[1:])], "non-decreasing"),
+        ([(*rec[:3], rec[3][:3], rec[4][:3], rec[5][:3])], "at least 4"),
+        ([(*rec[:3], rec[3][::-1], *rec[4:])], "strictly increasing"),
+        ([(rec[0], rec[1], rec[2] * np.nan, *rec[3:])], "no valid orientation"),
+    ]
+    for recs, message in cases:
+        with pytest.raises(ValueError, match=message.replace("(", r"\(")):
+            tuning.tuning_data(recs)
+
+
+def test_measured_recording_aligns_a_rigidly_moved_stream():
+    """A stream measured in another frame (rotated 70 degrees, shifted 2 m, 1 mm noise):
+    ``align=True`` moves it back onto the ground truth; the render times lie inside both."""
+    t, p, q = pj.synthetic_head_motion(duration=2.0, rate=120.0, seed=5)
+    t, p, q = (np.asarray(x) for x in (t, p, q))
+    rng = np.random.default_rng(0)
+    k = slice(None, None, 4)  # 30 Hz frames
+    qr = np.asarray(pj.quat_from_rotvec(np.array([0.3, -1.0, 0.6]) * math.radians(70) / 1.2))
+    rot = np.asarray(pj.quat_to_matrix(qr))
+    shift = np.array([2.0, -1.0, 0.5])
+    mq = np.asarray(pj.quat_mul(qr, q[k]))
+    # exact without noise
+    _, ap, aq, *_ = tuning.measured_recording((t, p, q), (t[k], p[k] @ rot.T + shift, mq),
+                                              align=True)
+    np.testing.assert_allclose(ap, p[k], atol=1e-12)
+    np.testing.assert_allclose(np.abs(np.sum(aq * q[k], -1)), 1.0, atol=1e-12)
+    # with 1 mm noise (1.7 mm RMS in 3-D) on a 4 cm head motion
+    mp = (p[k] + rng.normal(scale=1e-3, size=p[k].shape)) @ rot.T + shift
+    mt, ap, aq, r, gp, gq = tuning.measured_recording((t, p, q), (t[k], mp, mq), align=True)
+    assert np.sqrt(np.mean(np.sum((ap - p[k]) ** 2, -1))) < 2e-3
+    assert r[0] >= mt[0] + 1 / 30 - 1e-9 and r[-1] <= min(mt[-1], t[-1])
+    np.testing.assert_allclose(np.diff(r), 1 / 120, rtol=1e-9)
+    assert np.isfinite(gp).all() and np.isfinite(gq).all()
+    # without align the stream is taken as it is
+    same = tuning.measured_recording((t, p, q), (t[k], mp, mq))
+    np.testing.assert_array_equal(same[1], mp)
+    for kwargs, message in (
+            (dict(measurements=(t[k] + 10.0, mp, mq)), "overlap for too short"),
+            (dict(measurements=(t[k], mp * np.nan, mq), align=True), "rigid transform"),
+            (dict(measurements=(t[k], mp, mq * np.nan)), "no valid orientation")):
+        with pytest.raises(ValueError, match=message):
+            tuning.measured_recording((t, p, q), **kwargs)
