@@ -232,7 +232,8 @@ def add_commands(sub) -> None:
     p = sub.add_parser(
         "tune", help="tune the causal tracker's parameters by gradient descent on recordings",
         description="Simulate the sensor on ground-truth trajectory files (or read the real "
-        "pose streams given by --measured), differentiate the whole causal stream with respect to the tracker's parameters (by default the IMM "
+        "pose streams given by --measured), differentiate the whole causal stream with respect "
+        "to the tracker's parameters (by default the IMM "
         "filter's model noise densities and switch rate and the segment horizon; log "
         "parameterisation) and minimise RMSE + lambda x RMS jerk (position and "
         "rotation, each relative to the tuned Kalman constant-velocity extrapolation, so lambda "
