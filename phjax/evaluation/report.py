@@ -142,7 +142,7 @@ def evaluate_recording(
 
     Render times run at ``render_rate`` from one camera period after the first valid frame;
     those that fall on a frame's timestamp are set to it exactly
-    (:func:`phjax.motion.resample.snap_to_frames`), so every method shows that frame there.
+    (:func:`phjax.motion.resample.snap_to_frames`), so every method has seen that frame there.
 
     Arguments:
         gt_times, gt_positions, gt_quaternions: ground truth (s, m (NaN for orientation-only),

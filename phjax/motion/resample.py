@@ -49,7 +49,7 @@ def snap_to_frames(
             e.g. simulated without ``jax_enable_x64``, get float32's rounding tolerance).
         query_times: (m,) render times.
         atol: tolerance, s, added to 8 units of rounding (in ``frame_times``' dtype) of the
-            frame time.
+            frame time; the sum is capped at a tenth of the smallest frame interval.
 
     Returns:
         (m,) float64 render times, snapped.
@@ -58,11 +58,18 @@ def snap_to_frames(
     eps = np.finfo(t.dtype if np.issubdtype(t.dtype, np.floating) else np.float64).eps
     t = t.astype(np.float64)
     q = np.asarray(query_times, np.float64)
+    if t.size == 0:
+        return q
     j = np.searchsorted(t, q)
     before = t[np.maximum(j - 1, 0)]
     after = t[np.minimum(j, t.shape[0] - 1)]
     nearest = np.where(after - q < q - before, after, before)
     tol = atol + 8 * eps * np.abs(nearest)
+    # never more than a tenth of the frame spacing (float32 rounding at hours of relative time)
+    gaps = np.diff(t)
+    gaps = gaps[gaps > 0]
+    if gaps.size:
+        tol = np.minimum(tol, 0.1 * gaps.min())
     return np.where(np.abs(nearest - q) <= tol, nearest, q)
 
 

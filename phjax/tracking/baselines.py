@@ -421,12 +421,13 @@ def kalman_extrapolation(
     Orientation-only input (all positions NaN) tracks orientation and returns NaN positions.
 
     Arguments:
-        config: :class:`phjax.KalmanConfig` (default noise model).
+        config: :class:`phjax.KalmanConfig` (default: the tuned noise :data:`TUNED`
+            ``["kalman"]``).
     """
     from .kalman import KalmanConfig
     from .tracker import _run_recording
 
-    config = KalmanConfig() if config is None else config
+    config = KalmanConfig(**TUNED["kalman"]) if config is None else config
     return _run_recording(_kalman_extrapolation_core, config, times, positions, quaternions,
                           render_times, None)
 

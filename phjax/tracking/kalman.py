@@ -107,7 +107,10 @@ class KalmanConfig(eqx.Module):
             (RMS jerk ~9 m/s^3 over ~0.25 s). ``None`` picks the default of ``model``.
         pos_meas_noise: position measurement std per axis, m (default 0.005).
         rot_process_noise: angular-acceleration spectral density, rad^2/s^3 (default 0.3,
-            tuned like ``pos_process_noise`` with a 1 degree sensor).
+            the single-model tracker's; tuned like ``pos_process_noise`` with a 1 degree sensor
+            before render samples at a frame's instant were made to see that frame: on that
+            grid the Kalman CV extrapolation baseline does best with 1.0,
+            :data:`phjax.tracking.baselines.TUNED`).
         rot_meas_noise: orientation measurement std per (world) axis, rad (default 1 degree).
         init_pos_vel_std: initial velocity std, m/s (default 0.5).
         init_pos_acc_std: initial acceleration std (CA only), m/s^2 (default 3.0).

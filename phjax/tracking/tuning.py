@@ -334,14 +334,14 @@ class TuningData(eqx.Module):
         return int(self.times.shape[0])
 
 
-def _as_traj(rec):
+def _as_traj(rec, name="ground-truth"):
     t, p, q = (np.asarray(x, np.float64) for x in (rec[0], rec[1], rec[2]))
     if t.ndim != 1 or p.shape != (t.shape[0], 3) or q.shape != (t.shape[0], 4) or t.size < 2:
-        raise ValueError("each recording must be (times (n,), positions (n, 3), quaternions "
-                         "(n, 4)) "
+        raise ValueError(f"each {name} recording must be (times (n,), positions (n, 3), "
+                         "quaternions (n, 4)) "
                          f"with n >= 2; got shapes {t.shape}, {p.shape}, {q.shape}")
     if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
-        raise ValueError("ground-truth times must be finite and strictly increasing")
+        raise ValueError(f"{name} times must be finite and strictly increasing")
     return t, p, q
 
 
@@ -412,7 +412,11 @@ def prepare_recordings(
 
 
 def _as_measured(i, rec):
-    """Checked float64 arrays of one recording of :func:`tuning_data`."""
+    """Checked float64 arrays of one recording of :func:`tuning_data`: render times snapped
+    onto coincident frame times (with the frame times' own rounding), repeated measurement
+    times dropped (the first kept, as :func:`phjax.track` does)."""
+    from ..motion.resample import snap_to_frames
+
     if len(rec) != 6:
         raise ValueError(f"recording {i}: expected (times, positions, quaternions, render_times, "
                          f"gt_positions, gt_quaternions), got {len(rec)} items")
@@ -431,7 +435,9 @@ def _as_measured(i, rec):
                          f"at least 4 (for the jerk terms); got {m}")
     if not (np.isfinite(q).all(-1) & (np.linalg.norm(q, axis=-1) > 0)).any():
         raise ValueError(f"recording {i}: no valid orientation measurement")
-    return t, p, q, r, gp, gq
+    r = snap_to_frames(np.asarray(rec[0]), r)
+    first = np.concatenate([[True], np.diff(t) > 0])
+    return t[first], p[first], q[first], r, gp, gq
 
 
 def measured_recording(
@@ -470,15 +476,18 @@ def measured_recording(
     from ..quaternion import quat_mul
 
     gt_t, gt_p, gt_q = _as_traj(ground_truth)
-    t, p, q = _as_traj(measurements)
+    t, p, q = _as_traj(measurements, "measurement")
     if seconds is not None:
         keep = t - t[0] <= seconds
         t, p, q = t[keep], p[keep], q[keep]
+    # JAX sees times relative to the ground truth's start (Unix times in float32 would be
+    # rounded to minutes when jax_enable_x64 is off)
+    o = gt_t[0]
     if align:
         from ..vision.alignment import AlignmentStatus
         from ..vision.alignment import align as rigid_fit
 
-        at_t, _ = interpolate_poses(gt_t, gt_p, gt_q, t, max_gap=max_gt_gap)
+        at_t, _ = interpolate_poses(gt_t - o, gt_p, gt_q, t - o, max_gap=max_gt_gap)
         inside = (t >= gt_t[0]) & (t <= gt_t[-1])
         fit = rigid_fit(p, np.where(inside[:, None], np.asarray(at_t), np.nan))
         if int(fit.status) != AlignmentStatus.OK:
@@ -498,7 +507,7 @@ def measured_recording(
         raise ValueError(f"measurements and ground truth overlap for too short a time "
                          f"({max(0.0, min(t[-1], gt_t[-1]) - start):.3g} s) for the jerk terms")
     gp, gq = (np.asarray(x, np.float64)
-              for x in interpolate_poses(gt_t, gt_p, gt_q, r, max_gap=max_gt_gap))
+              for x in interpolate_poses(gt_t - o, gt_p, gt_q, r - o, max_gap=max_gt_gap))
     return t, p, q, r, gp, gq
 
 
@@ -521,7 +530,8 @@ def tuning_data(
     Arguments:
         recordings: sequence of ``(times (n,), positions (n, 3), quaternions (n, 4),
             render_times (m,), gt_positions (m, 3), gt_quaternions (m, 4))``: the camera-rate
-            measurements in s, m, wxyz (non-decreasing times; NaN = lost frame; positions all
+            measurements in s, m, wxyz (non-decreasing times, repeats dropped as by
+            :func:`phjax.track`; NaN = lost frame; positions all
             NaN = orientation only, tracked as a fixed point like :func:`phjax.track`), the
             render times (strictly increasing, at least 4) and the ground truth at them (NaN
             where unknown: those samples do not count).
@@ -532,7 +542,6 @@ def tuning_data(
     Returns:
         A :class:`TuningData` (recordings padded to common lengths and stacked).
     """
-    from ..motion.resample import snap_to_frames
     from .baselines import TUNED, kalman_extrapolation
 
     if reference_config is None:
@@ -543,7 +552,7 @@ def tuning_data(
     for i, rec in enumerate(recordings):
         mt, mp, mq, r, gp, gq = _as_measured(i, rec)
         t0 = mt[0]
-        mt, r = mt - t0, snap_to_frames(mt, r) - t0
+        mt, r = mt - t0, r - t0
         has_pos = np.isfinite(mp).any()
         known = np.isfinite(gp).all(-1)
         origin = gp[np.argmax(known)] if known.any() else (
@@ -563,8 +572,8 @@ def tuning_data(
     cols = [[] for _ in range(8)]
     for mt, mp, mq, r, gp, gq, ref in recs:
         pad_n, pad_m = n - mt.size, m - r.size
-        # padding frames come after every render time (so no render sample ever uses them);
-        # padding render samples are masked out
+        # padding frames come 1 s after the last real frame and render time; padding render
+        # samples (the only ones that may reach them) are masked out
         t_pad = max(mt[-1], r[-1]) + 1.0 + np.arange(pad_n)
         cols[0].append(np.concatenate([mt, t_pad]))
         cols[1].append(np.concatenate([mp, np.full((pad_n, 3), np.nan)]))

@@ -189,3 +189,17 @@ def test_snap_to_frames_float32_frame_times_and_far_samples():
     np.testing.assert_array_equal(snap_to_frames(np.array([0.0, 1.0]), [1.0 + 1e-6]), [1.0 + 1e-6])
     # before the first and after the last frame
     np.testing.assert_array_equal(snap_to_frames(np.array([1.0, 2.0]), [0.5, 2.5]), [0.5, 2.5])
+
+
+def test_snap_to_frames_tolerance_is_capped_and_empty_frames_pass_through():
+    # float32 frame times at 10^4 s: 8 units of rounding (~8 ms) would exceed a 120 Hz render
+    # period; the cap (a tenth of the frame interval) keeps the other samples where they are
+    frames64 = 1e4 + np.arange(40) / 30.0
+    frames32 = frames64.astype(np.float32)
+    render = frames64[1] + np.arange(100) / 120.0
+    snapped = snap_to_frames(frames32, render)
+    moved = snapped != render
+    assert np.all(np.diff(snapped) > 0)
+    np.testing.assert_array_equal(np.flatnonzero(moved) % 4, 0)
+    np.testing.assert_array_equal(snapped[::4], frames32[1:26].astype(np.float64))
+    np.testing.assert_array_equal(snap_to_frames(np.zeros(0), [1.0, 2.0]), [1.0, 2.0])

@@ -559,3 +559,39 @@ def test_measured_recording_aligns_a_rigidly_moved_stream():
             (dict(measurements=(t[k], mp, mq * np.nan)), "no valid orientation")):
         with pytest.raises(ValueError, match=message):
             tuning.measured_recording((t, p, q), **kwargs)
+
+
+def test_tuning_data_drops_repeated_measurement_times_like_track():
+    rec = list(_simulated(pj.synthetic_head_motion(duration=1.0, rate=120.0, seed=6), 0))
+    k = 5
+    dup = [np.insert(x, k + 1, x[k], axis=0) for x in rec[:3]]  # frame k repeated
+    dup[1][k + 1] += 0.01  # a different pose at the same time: the first one counts
+    a = tuning.tuning_data([tuple(rec)])
+    b = tuning.tuning_data([(*dup, *rec[3:])])
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    with pytest.raises(ValueError, match="measurement times must be finite and strictly"):
+        tuning.measured_recording(tuple(rec[:3]), tuple(dup))
+
+
+def test_measured_recording_with_unix_times_without_x64(tmp_path):
+    """Without jax_enable_x64 (JAX's default) the ground truth at the render times is still
+    right for 1.3e9 s Unix timestamps: the interpolation sees relative times."""
+    import subprocess
+    import sys
+
+    code = """
+import numpy as np
+from phjax.tracking import tuning
+t = 1.3e9 + np.arange(0, 3.0, 0.01)
+v = np.array([0.3, -0.2, 0.1])
+p = (t - t[0])[:, None] * v
+q = np.tile([1.0, 0.0, 0.0, 0.0], (t.size, 1))
+k = slice(0, None, 3)
+mt, mp, mq, r, gp, gq = tuning.measured_recording((t, p, q), (t[k], p[k], q[k]))
+print(np.abs(gp - (r - t[0])[:, None] * v).max())
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         env={**__import__("os").environ, "JAX_ENABLE_X64": "0"})
+    assert out.returncode == 0, out.stderr
+    assert float(out.stdout.strip().splitlines()[-1]) < 1e-5  # float32 at 1 m: ~1e-7
