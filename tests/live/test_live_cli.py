@@ -129,11 +129,13 @@ def test_bad_input_process_has_no_traceback(tmp_path):
     assert "Traceback" not in r.stderr
 
 
+@pytest.mark.serial
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_signal_stops_cleanly(sig, listener, tmp_path):  # noqa: F811
     """SIGTERM / Ctrl-C: exit 0, the log flushed and complete (in a child process, so that the
     signal can never reach the test runner; the in-process shutdown -- threads joined, sockets
-    closed -- is checked by the runner tests)."""
+    closed -- is checked by the runner tests). Serial: once, beside a compiling xdist worker,
+    the child had not exited 60 s after Ctrl-C (it passes alone; cause not found)."""
     poses = tmp_path / "p.tum"
     write_tum(poses, Trajectory(*smooth_motion(3000, 30.0)))
     log = tmp_path / "sent.tum"
