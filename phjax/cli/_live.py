@@ -28,12 +28,20 @@ def cmd_live(args) -> int:
     previous = {}
     if threading.current_thread() is threading.main_thread():
         def on_term(signum, frame):
-            lt._stop.set()
+            lt.request_stop()
+
+        def on_int(signum, frame):
+            # the first Ctrl-C ends the run cleanly; a second one interrupts the wait at once
+            lt.request_stop()
+            signal.signal(signal.SIGINT, signal.default_int_handler)
 
         def on_usr1(signum, frame):
             lt.center()
 
         previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, on_term)
+        # installed even where SIGINT was inherited as ignored (a job started with '&' from a
+        # script): then Python raises no KeyboardInterrupt and 'kill -INT' would do nothing
+        previous[signal.SIGINT] = signal.signal(signal.SIGINT, on_int)
         if hasattr(signal, "SIGUSR1"):
             previous[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, on_usr1)
     tty = sys.stderr.isatty()
@@ -46,8 +54,8 @@ def cmd_live(args) -> int:
 
     try:
         lt.run(status=status, status_interval=args.status_interval)
-    except KeyboardInterrupt:
-        lt.stop()
+    except KeyboardInterrupt:  # a second Ctrl-C: do not wait long for a hanging camera read
+        lt.stop(timeout=2.0)
     except Exception as e:  # noqa: BLE001 - a failing camera at run time
         print(f"\nphjax live: error: {e}", file=sys.stderr)
         return 1

@@ -336,14 +336,25 @@ class LiveTracker:
         s.update_late(0.02, 0.03, p, q)
         np.asarray(s.sample(0.04)[0])
 
-    def stop(self) -> None:
-        """Stop both threads, close the outputs, the log and the source (idempotent)."""
-        self._stop.set()
+    def stop(self, timeout: float | None = None) -> None:
+        """Stop both threads, close the outputs, the log and the source (idempotent).
+
+        Arguments:
+            timeout: seconds to wait for each thread (default: until it ends). A thread still
+                running then (a camera read hanging in its driver) is left behind (it is a
+                daemon thread) and everything is closed all the same.
+        """
+        self.request_stop()
         if isinstance(self.clock, VirtualClock):
             self.clock.wake()
         for th in self._threads:
-            th.join()
+            th.join(timeout)
         self._cleanup()
+
+    def request_stop(self) -> None:
+        """Ask the run to end (returns at once; safe in a signal handler): both threads leave
+        their loops at their next wake-up, :meth:`run` then stops and returns."""
+        self._stop.set()
 
     def _cleanup(self) -> None:
         if self._closed:

@@ -163,6 +163,44 @@ def test_render_loop_never_waits_for_a_slow_front_end():
     assert np.isfinite([s.position for s in got]).all()
 
 
+def test_stop_with_timeout_leaves_a_hung_camera_behind_and_closes_everything(listener):  # noqa: F811
+    """A camera read that never returns (a hung driver): ``stop(timeout)`` returns in about the
+    timeout, with the outputs and the source closed; ``request_stop`` alone ends a healthy run."""
+    from phjax.live import Measurement, Source
+
+    release = threading.Event()
+    closed = []
+
+    class Hung(Source):
+        name = "hung"
+
+        def run(self, clock, t0, stop, emit):
+            _, p, q = smooth_motion(2, 30.0)
+            emit(Measurement(clock.now(), p[0], q[0]))
+            release.wait(30.0)  # blocks and ignores ``stop``, like a read stuck in a driver
+
+        def close(self):
+            closed.append(True)
+
+    lt = LiveTracker(Hung(), [f"opentrack://127.0.0.1:{listener.port}"], rate=100.0).start()
+    try:
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        lt.stop(timeout=0.3)
+        assert time.monotonic() - t0 < 2.0
+        assert closed == [True] and all(o.sock.fileno() == -1 for o in lt.outputs)
+        assert lt.sent > 0
+    finally:
+        release.set()
+
+    t, p, q = smooth_motion(3000, 30.0)
+    lt = LiveTracker(PoseReplaySource(t, p, q), rate=100.0)
+    threading.Timer(0.5, lt.request_stop).start()
+    t0 = time.monotonic()
+    lt.run()  # returns once the request is seen, threads joined
+    assert time.monotonic() - t0 < 10.0 and not lt.running
+
+
 def _rss_mb() -> float:
     with open("/proc/self/status") as f:
         for line in f:
