@@ -330,3 +330,67 @@ def test_c2_spline_smoke(tmp_path):
     assert abs(rmse_c2 / rmse_c1 - 1) < 0.05 and rmse_c1 < rmse_cs and rmse_c2 < rmse_cs
     assert float(cells[8]) < 1e-9  # equation residual of the window solves
     assert "not interpolating (failed): 0" in text
+
+
+# ----------------------------------------------------------------------------------------------
+# the linear-prediction bound (predictor_bound.py)
+# ----------------------------------------------------------------------------------------------
+
+
+def test_lag_features_skip_incomplete_windows_and_hold_offsets():
+    import predictor_bound as pb
+
+    x = np.arange(10.0)[:, None] * np.array([[1.0, -2.0]])
+    ok = np.ones(10, bool)
+    ok[6] = False
+    k, f = pb.lag_features(x, ok, taps=3)
+    assert k.tolist() == [2, 3, 4, 5, 9]  # every window touching index 6 is left out
+    assert f.shape == (5, 2, 2)
+    np.testing.assert_allclose(f[0], [[-1.0, -2.0], [2.0, 4.0]])  # x[1] - x[2], x[0] - x[2]
+
+
+def test_fir_is_exact_on_constant_velocity_and_the_oracle_never_loses():
+    import predictor_bound as pb
+
+    rng = np.random.default_rng(0)
+    dt, h = 1 / 30, 0.025
+    t = np.arange(200) * dt
+    x = np.stack([0.3 * t + 1.0, -0.7 * t, 0.05 * t], -1)
+    k, f = pb.lag_features(x, np.ones(200, bool), taps=5)
+    y = 0 * x[k] + np.array([0.3, -0.7, 0.05]) * h  # constant velocity: offset v h
+    w = pb.fit_fir([f], [y])
+    np.testing.assert_allclose(f @ w, y, atol=1e-12)
+    # on noisy data the weights fitted on a recording beat any others there (least squares)
+    xn = x + 0.005 * rng.standard_normal(x.shape)
+    k, fn = pb.lag_features(xn, np.ones(200, bool), taps=5)
+    yn = x[k] + np.array([0.3, -0.7, 0.05]) * h - xn[k]
+    own = pb.fit_fir([fn], [yn])
+    for other in (w, np.zeros_like(w), own + 0.01 * rng.standard_normal(own.shape)):
+        assert pb._rms_norm(fn @ own - yn) <= pb._rms_norm(fn @ other - yn) + 1e-15
+
+
+def test_rotation_features_are_tangent_offsets_from_the_newest():
+    import predictor_bound as pb
+
+    from phjax._np_quat import np_from_rotvec
+
+    w = np.array([0.0, 0.0, 0.5])  # rad per sample about z
+    q = np_from_rotvec(np.arange(8)[:, None] * w)
+    _, f = pb.rotation_features(q, np.ones(8, bool), taps=4)
+    np.testing.assert_allclose(f[0], -np.outer(w, [1, 2, 3]), atol=1e-12)
+
+
+def test_predictor_bound_smoke(tmp_path):
+    shared_path("tum_rgbd_groundtruth")
+    import predictor_bound as pb
+
+    out = tmp_path / "pb"
+    assert pb.main(["--smoke", "--out", str(out)]) == 0
+    rows = _rows(out / "predictor_bound.csv")
+    assert {r["channel"] for r in rows} == {"position", "rotation"}
+    for r in rows:
+        vals = [float(r[k]) for k in ("kalman_cv", "imm", "fir_train", "fir_oracle")]
+        assert all(np.isfinite(v) and v > 0 for v in vals), r
+        # the oracle is fitted on the scored recording: never worse than the train fit there
+        assert float(r["fir_oracle"]) <= float(r["fir_train"]) * (1 + 1e-9), r
+    assert "FIR oracle / IMM" in (out / "predictor_bound.md").read_text()
