@@ -54,6 +54,31 @@ def load_devset(max_seconds: float = 30.0, max_windows: int = 1, root: Path | No
     return seqs
 
 
+def simulated_devset(seconds: float, quick: bool = False, rate: float = 30.0):
+    """The development set as the frontier studies see it: the first ``seconds`` of each
+    recording (origin at its first sample), measured by the default sensor (seed 0) and cut to
+    ``int((seconds - 1) * rate)`` frames; recordings with fewer frames are skipped (said on
+    stdout); ``quick``: every third recording. Returns dicts with ``name, kind, t, p, q`` (ground
+    truth), ``mt, mp, mq`` (frames) and ``has_pos``, in devset order."""
+    from phjax.motion.simulate import SensorModel, simulate_measurements
+
+    seqs = load_devset(max_seconds=seconds)
+    if quick:
+        seqs = seqs[::3]
+    n = int((seconds - 1.0) * rate)
+    out = []
+    for name, kind, t, p, q in seqs:
+        t = t - t[0]
+        mt, mp, mq = (np.asarray(x, np.float64)
+                      for x in simulate_measurements(0, t, p, q, SensorModel()))
+        if mt.shape[0] < n:
+            print(f"skip {name}: {mt.shape[0]} frames < {n}")
+            continue
+        out.append(dict(name=name, kind=kind, t=t, p=p, q=q, mt=mt[:n], mp=mp[:n], mq=mq[:n],
+                        has_pos=bool(np.isfinite(p).any())))
+    return out
+
+
 if __name__ == "__main__":
     for name, kind, t, p, q in load_devset():
         print(f"{name:40s} {kind:7s} {t[-1] - t[0]:6.1f} s  {len(t):6d} samples  "

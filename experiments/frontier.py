@@ -61,11 +61,10 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from devset import load_devset  # noqa: E402
+from devset import simulated_devset  # noqa: E402
 
 from phjax.evaluation.metrics import rms_jerk_position, rms_jerk_rotation  # noqa: E402
 from phjax.motion.resample import interpolate_poses, snap_to_frames  # noqa: E402
-from phjax.motion.simulate import SensorModel, simulate_measurements  # noqa: E402
 from phjax.tracking import baselines, tuning  # noqa: E402
 from phjax.tracking.imm import IMMConfig  # noqa: E402
 from phjax.tracking.kalman import KalmanConfig  # noqa: E402
@@ -87,30 +86,20 @@ def prepare(seconds: float, cache: Path, quick: bool, phase: float = 0.0):
     if cache.exists():
         z = np.load(cache, allow_pickle=True)
         return list(z["data"])
-    seqs = load_devset(max_seconds=seconds)
-    if quick:
-        seqs = seqs[::3]
-    n = int((seconds - 1.0) * RATE)
     m = int((seconds - 1.0 - WARMUP - 0.2) * RENDER)
     out = []
-    for name, kind, t, p, q in seqs:
-        t = t - t[0]
-        mt, mp, mq = (np.asarray(x, np.float64)
-                      for x in simulate_measurements(0, t, p, q, SensorModel()))
-        if mt.shape[0] < n:
-            print(f"skip {name}: {mt.shape[0]} frames < {n}")
-            continue
-        mt, mp, mq = mt[:n], mp[:n], mq[:n]
+    for rec in simulated_devset(seconds, quick, RATE):
+        t, p, q, mt = rec["t"], rec["p"], rec["q"], rec["mt"]
         # render samples at a frame's instant see that frame, whatever the rounding
         r = snap_to_frames(mt, mt[0] + WARMUP + (np.arange(m) + phase) / RENDER)
         gp, gq = (np.asarray(x) for x in interpolate_poses(t, p, q, r, max_gap=0.1))
         # ground truth shifted by every candidate lag (for the lag metric)
         sp, sq = (np.asarray(x) for x in interpolate_poses(
             t, p, q, (r[None, :] - LAGS[:, None]).ravel(), max_gap=0.1))
-        out.append(dict(name=name, kind=kind, mt=mt, mp=mp, mq=mq, r=r, gp=gp, gq=gq, phase=phase,
-                        sp=sp.reshape(len(LAGS), m, 3), sq=sq.reshape(len(LAGS), m, 4),
-                        has_pos=bool(np.isfinite(p).any())))
-        print(f"prepared {name}", flush=True)
+        out.append(dict(name=rec["name"], kind=rec["kind"], mt=mt, mp=rec["mp"], mq=rec["mq"], r=r,
+                        gp=gp, gq=gq, phase=phase, sp=sp.reshape(len(LAGS), m, 3),
+                        sq=sq.reshape(len(LAGS), m, 4), has_pos=rec["has_pos"]))
+        print(f"prepared {rec['name']}", flush=True)
     out.sort(key=lambda d: d["name"])
     cache.parent.mkdir(parents=True, exist_ok=True)
     np.savez(cache, data=np.array(out, dtype=object))

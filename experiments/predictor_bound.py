@@ -46,11 +46,10 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from devset import load_devset  # noqa: E402
+from devset import simulated_devset  # noqa: E402
 
 from phjax._np_quat import np_qconj, np_qmul, np_rotvec  # noqa: E402
 from phjax.motion.resample import interpolate_poses  # noqa: E402
-from phjax.motion.simulate import SensorModel, simulate_measurements  # noqa: E402
 from phjax.tracking import baselines  # noqa: E402
 
 RATE, RENDER = 30.0, 120.0
@@ -114,21 +113,7 @@ def _rms_deg(q, g) -> float:
 
 def prepare(seconds: float, quick: bool):
     """The frontier's recordings: ground truth and simulated frames, sorted by name."""
-    seqs = load_devset(max_seconds=seconds)
-    if quick:
-        seqs = seqs[::3]
-    n = int((seconds - 1.0) * RATE)
-    out = []
-    for name, kind, t, p, q in seqs:
-        t = t - t[0]
-        mt, mp, mq = (np.asarray(x, np.float64)
-                      for x in simulate_measurements(0, t, p, q, SensorModel()))
-        if mt.shape[0] < n:
-            continue
-        out.append(dict(name=name, kind=kind, t=t, p=p, q=q, mt=mt[:n], mp=mp[:n], mq=mq[:n],
-                        has_pos=bool(np.isfinite(p).any())))
-    out.sort(key=lambda d: d["name"])
-    return out
+    return sorted(simulated_devset(seconds, quick, RATE), key=lambda d: d["name"])
 
 
 def extrapolations(d, phase: int):
