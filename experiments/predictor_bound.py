@@ -56,12 +56,18 @@ RATE, RENDER = 30.0, 120.0
 PHASES = (0, 1, 2, 3)
 
 
+def _usable(ok: np.ndarray, taps: int, first: int) -> np.ndarray:
+    """Indices ``k >= first`` whose last ``taps`` samples are all valid (``ok``)."""
+    return np.array([i for i in range(max(first, taps - 1), ok.shape[0])
+                     if ok[i - taps + 1:i + 1].all()], dtype=int)
+
+
 def lag_features(x: np.ndarray, ok: np.ndarray, taps: int, first: int = 0):
     """Offsets of the ``taps - 1`` older samples from the newest, for every index ``k >= first``
     whose last ``taps`` samples are valid.
 
     Arguments:
-        x: ``(n, d)`` samples (positions, or tangent vectors already relative: see below).
+        x: ``(n, d)`` samples (positions).
         ok: ``(n,)`` validity.
         taps: window length ``N`` (>= 2).
         first: smallest index considered.
@@ -70,11 +76,7 @@ def lag_features(x: np.ndarray, ok: np.ndarray, taps: int, first: int = 0):
         ``(k, X)``: the indices ``(m,)`` and the features ``(m, d, N - 1)``, ``X[i, a, j] =
         x[k_i - 1 - j, a] - x[k_i, a]``.
     """
-    n = x.shape[0]
-    k = np.array([i for i in range(max(first, taps - 1), n) if ok[i - taps + 1:i + 1].all()],
-                 dtype=int)
-    if k.size == 0:
-        return k, np.zeros((0, x.shape[1], taps - 1))
+    k = _usable(ok, taps, first)
     older = x[k[:, None] - 1 - np.arange(taps - 1)[None, :]]  # (m, N-1, d)
     return k, np.swapaxes(older - x[k][:, None, :], 1, 2)
 
@@ -82,12 +84,9 @@ def lag_features(x: np.ndarray, ok: np.ndarray, taps: int, first: int = 0):
 def rotation_features(q: np.ndarray, ok: np.ndarray, taps: int, first: int = 0):
     """:func:`lag_features` for orientations: ``log(q_{k-1-j} q_k^-1)`` (world tangent space at
     the newest measurement), ``(m, 3, N - 1)``."""
-    n = q.shape[0]
-    k, _ = lag_features(np.zeros((n, 1)), ok, taps, first)
-    if k.size == 0:
-        return k, np.zeros((0, 3, taps - 1))
+    k = _usable(ok, taps, first)
     older = q[k[:, None] - 1 - np.arange(taps - 1)[None, :]]  # (m, N-1, 4)
-    rel = np_rotvec(np_qmul(older, np_qconj(q[k])[:, None, :]))
+    rel = np_rotvec(np_qmul(older, np_qconj(q[k])[:, None, :])).reshape(k.size, taps - 1, 3)
     return k, np.swapaxes(rel, 1, 2)
 
 
