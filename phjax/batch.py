@@ -36,6 +36,8 @@ import numpy as np
 from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike
 
+from ._jit import jit
+
 __all__ = [
     "BATCH_AXIS",
     "batch_mesh",
@@ -236,8 +238,8 @@ def _shard_mapped(fn: Callable, mesh: Mesh, axis, in_tree, batched: tuple, stati
     def flat_fn(*args):
         return fn(*args)
 
-    return jax.jit(jax.shard_map(flat_fn, mesh=mesh, in_specs=tuple(in_specs), out_specs=spec,
-                                 check_vma=False), donate_argnums=donate, keep_unused=bool(donate))
+    return jit(jax.shard_map(flat_fn, mesh=mesh, in_specs=tuple(in_specs), out_specs=spec,
+                             check_vma=False), donate_argnums=donate, keep_unused=bool(donate))
 
 
 def _sharded_function(fn: Callable, sharding: NamedSharding, args: tuple, static: dict,

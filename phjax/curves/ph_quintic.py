@@ -61,6 +61,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .._jit import jit
 from .._misc import (
     dot_last,
     safe_atan2,
@@ -614,7 +615,7 @@ def near_optimal_angles(
     return _near_optimal_jit(*(jnp.asarray(x) for x in (p0, p1, d0, d1)), axis)
 
 
-@jax.jit
+@jit
 def _near_optimal_jit(p0, p1, d0, d1, axis):
     p0, p1, d0, d1, frame = _prepare(p0, p1, d0, d1, axis)
     return _cc_angles(p0, p1, d0, d1, None if axis is None else frame)
@@ -746,7 +747,7 @@ def _hermite_impl(p0, p1, d0, d1, phi0, phi2, phi1, axis) -> PHQuintic:
     return _from_coefficients(p0, A0, A1, A2)
 
 
-_hermite_jit = jax.jit(_hermite_impl)
+_hermite_jit = jit(_hermite_impl)
 
 
 def _from_coefficients(p0, A0, A1, A2) -> PHQuintic:

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._jit import jit
 from ..batch import _leading_sharding, _sharded_function
 from .ph_quintic import PHQuintic
 
@@ -44,7 +45,7 @@ def _sample_impl(curves: PHQuintic, *, n: int, by: str, with_t: bool = True):
     return (t if with_t else None), curves.position(t)
 
 
-_sample_jit = jax.jit(_sample_impl, static_argnames=("n", "by", "with_t"))
+_sample_jit = jit(_sample_impl, static_argnames=("n", "by", "with_t"))
 
 
 def sample(
@@ -83,7 +84,7 @@ def _into_impl(curves, points, t, *, by):
 
 # keep_unused: the buffers are only donated, never read; an unused argument would be pruned
 # and its donation dropped
-_into_jit = jax.jit(_into_impl, static_argnames=("by",), donate_argnums=(1, 2), keep_unused=True)
+_into_jit = jit(_into_impl, static_argnames=("by",), donate_argnums=(1, 2), keep_unused=True)
 
 
 def _check_buffer(name, buf, shape):
@@ -140,7 +141,7 @@ def _chunk_impl(curves, start, points, t, *, by):
     return _into_impl(part, points, t, by=by)
 
 
-_chunk_jit = jax.jit(_chunk_impl, static_argnames=("by",), donate_argnums=(2, 3), keep_unused=True)
+_chunk_jit = jit(_chunk_impl, static_argnames=("by",), donate_argnums=(2, 3), keep_unused=True)
 
 
 def sample_chunks(

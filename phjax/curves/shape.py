@@ -117,6 +117,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._jit import jit
 from .._misc import safe_div, safe_norm, safe_sqrt
 from .ph_quintic import (
     PHQuintic,
@@ -825,7 +826,7 @@ def _finite_mask(p0, p1, d0, d1, kmax, tmax, axis):
     return finite
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@functools.partial(jit, static_argnums=0)
 def _solve_jit(st: _Settings, p0, p1, d0, d1, kmax, tmax, axis):
     """The optimal angles (no derivatives): ``(phi, lam, phase2, fscale, peak parameters,
     code, steps)``."""
@@ -929,7 +930,7 @@ def _solve_jvp(st, primals, tangents):
     return out, jax.tree.map(zero, out)
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@functools.partial(jit, static_argnums=0)
 def _outputs_jit(st: _Settings, p0, p1, d0, d1, kmax, tmax, axis, phi, lam, phase2, fscale,
                  tpk, code, steps):
     """Differentiable curve and record at the solver's angles (implicit-function derivatives)."""
@@ -1134,7 +1135,7 @@ def _grid_pick(f, q, g0, g2):
     return jnp.stack([g0[i // g2.shape[0]], g2[i % g2.shape[0]]])
 
 
-@functools.partial(jax.jit, static_argnums=(0, 8, 9, 10, 11))
+@functools.partial(jit, static_argnums=(0, 8, 9, 10, 11))
 def _grid_jit(cfg, p0, p1, d0, d1, kmax, tmax, axis, n, refine, report_points, constraint_rtol):
     dtype = p0.dtype
     k = jnp.arange(-4, 5, dtype=dtype)

@@ -14,12 +14,12 @@ NaN.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._jit import jit
 from .._misc import safe_div
 from ..quaternion import quat_conj, quat_mul, quat_normalize, quat_slerp, quat_to_rotvec
 
@@ -107,7 +107,7 @@ def _interp_weights(times, valid, k, query, max_gap):
     return i0, i1, s, ok
 
 
-@jax.jit
+@jit
 def interpolate_poses(
     times: Float[ArrayLike, " n"],
     positions: Float[ArrayLike, "n 3"],
@@ -191,7 +191,7 @@ def _diff_weights(t: Float[Array, " n"]):
     return interior, start, end
 
 
-@jax.jit
+@jit
 def finite_difference_velocities(
     times: Float[ArrayLike, " n"],
     positions: Float[ArrayLike, "n 3"],

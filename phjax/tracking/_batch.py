@@ -15,20 +15,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._jit import jit
+from .._jit import jit
 from ..batch import _leading_sharding, _sharded_function
-
-#: time step (s) between the padding frames placed after a recording's last real frame
-_PAD_STEP = 1.0
+from ._shapes import MIN_FRAMES, MIN_RENDER, PAD_STEP, bounded_cache, size_class
 
 
 def _lost_padding_frames(times, positions, quaternions):
     """One recording's padding frames (NaN times, trailing) as lost frames (NaN measurements)
-    ``_PAD_STEP`` apart after its last real frame (finite values and gradients)."""
+    ``PAD_STEP`` apart after its last real frame (finite values and gradients)."""
     valid = jnp.isfinite(times)
     n_valid = jnp.sum(valid)
     t_last = jnp.where(n_valid > 0, times[jnp.maximum(n_valid - 1, 0)], 0)
     k = jnp.arange(times.shape[0]) - n_valid + 1
-    t = jnp.where(valid, times, t_last + _PAD_STEP * k)
+    t = jnp.where(valid, times, t_last + PAD_STEP * k)
     nan = jnp.asarray(jnp.nan, positions.dtype)
     return (t, jnp.where(valid[:, None], positions, nan),
             jnp.where(valid[:, None], quaternions, nan))
@@ -36,7 +36,7 @@ def _lost_padding_frames(times, positions, quaternions):
 
 def _fill_padding(times, positions, quaternions, dtype):
     """One padded recording as the core expects it: times relative to the first frame, the
-    padding frames (NaN time) turned into lost frames ``_PAD_STEP`` apart after the last real
+    padding frames (NaN time) turned into lost frames ``PAD_STEP`` apart after the last real
     one, orientation-only data at a fixed point. Returns the arrays, the time origin, the last
     real time (relative), the number of real frames and the orientation-only flag."""
     valid = jnp.isfinite(times)
@@ -45,7 +45,7 @@ def _fill_padding(times, positions, quaternions, dtype):
     t = times - origin
     t_last = jnp.where(n_valid > 0, t[jnp.maximum(n_valid - 1, 0)], 0)
     k = jnp.arange(times.shape[0]) - n_valid + 1
-    t = jnp.where(valid, t, t_last + _PAD_STEP * k).astype(dtype)
+    t = jnp.where(valid, t, t_last + PAD_STEP * k).astype(dtype)
     nan = jnp.asarray(jnp.nan, dtype)
     p = jnp.where(valid[:, None], positions.astype(dtype), nan)
     q = jnp.where(valid[:, None], quaternions.astype(dtype), nan)
@@ -55,39 +55,37 @@ def _fill_padding(times, positions, quaternions, dtype):
     return t, p, q, origin, t_last.astype(dtype), n_valid, orientation_only
 
 
-def _one(kind, config, times, positions, quaternions, render_times, dtype):
-    """``track`` (``kind="track"``) or ``reconstruct`` of one padded recording, traceable."""
-    from .tracker import _reconstruct_core, _track_core
-
+def _one(core, hold_end, config, times, positions, quaternions, render_times, dtype):
+    """``core`` (the one-recording program of ``track`` or ``reconstruct``) on one padded
+    recording, traceable; ``hold_end``: the core interpolates between frames, so render times
+    are clamped to the last real frame."""
     t, p, q, origin, t_last, n_valid, orientation_only = _fill_padding(
         times, positions, quaternions, dtype)
     r_ok = jnp.isfinite(render_times)
     r = jnp.where(r_ok, render_times - origin, 0).astype(dtype)
-    if kind == "track":
-        out_p, out_q = _track_core(config, t, p, q, r)
-    else:  # hold the end pose past the last real frame: never interpolate into the padding
-        out_p, out_q = _reconstruct_core(config, t, p, q, jnp.minimum(r, t_last))
+    # hold the end pose past the last real frame: never interpolate into the padding
+    out_p, out_q = core(config, t, p, q, jnp.minimum(r, t_last) if hold_end else r)
     bad = (~r_ok | (n_valid == 0))[:, None]
     nan = jnp.asarray(jnp.nan, dtype)
     return (jnp.where(bad | orientation_only, nan, out_p), jnp.where(bad, nan, out_q))
 
 
-def _local(config, times, positions, quaternions, render_times, *, kind, dtype):
+def _local(config, times, positions, quaternions, render_times, *, core, hold_end, dtype):
     """The batch (or one device's part of it): flatten the batch axes, ``vmap`` the core."""
     b, n = times.shape[:-1], times.shape[-1]
     shared = render_times.ndim == 1
     m = render_times.shape[-1]
     flat = (times.reshape(-1, n), positions.reshape(-1, n, 3), quaternions.reshape(-1, n, 4),
             render_times if shared else render_times.reshape(-1, m))
-    one = functools.partial(_one, kind, dtype=jnp.dtype(dtype))
+    one = functools.partial(_one, core, hold_end, dtype=jnp.dtype(dtype))
     p, q = jax.vmap(one, in_axes=(None, 0, 0, 0, None if shared else 0))(config, *flat)
     return p.reshape(b + (m, 3)), q.reshape(b + (m, 4))
 
 
-_local_jit = jax.jit(_local, static_argnames=("kind", "dtype"))
+_local_jit = jit(_local, static_argnames=("core", "hold_end", "dtype"))
 
 
-@jax.jit
+@jit
 def _check_values(times, render_times):
     """Flags of bad batch input: a real frame after padding, times not strictly increasing,
     infinite times, infinite render times."""
@@ -103,11 +101,24 @@ def _as_array(x):
     return x if isinstance(x, jax.Array) else jnp.asarray(np.asarray(x))
 
 
-def run_batch(kind, config, times, positions, quaternions, render_times, dtype):
-    """Validate a padded batch (shapes on the host, values with one small reduction), then run
-    the compiled batch program (``shard_map`` over the mesh if the inputs are batch-sharded)."""
-    from .tracker import _bounded_cache
+def _pad_to_class(times, positions, quaternions, render_times):
+    """A padded batch padded further, to its size class (NaN frames and render times)."""
+    n, m = times.shape[-1], render_times.shape[-1]
+    dn, dm = size_class(n, MIN_FRAMES) - n, size_class(m, MIN_RENDER) - m
 
+    def pad(x, axis, k):
+        widths = [(0, 0)] * x.ndim
+        widths[axis] = (0, k)
+        return jnp.pad(x, widths, constant_values=jnp.nan)
+
+    return (pad(times, -1, dn), pad(positions, -2, dn), pad(quaternions, -2, dn),
+            pad(render_times, -1, dm)), m
+
+
+def run_batch(core, config, times, positions, quaternions, render_times, dtype, hold_end=False):
+    """Validate a padded batch (shapes on the host, values with one small reduction), then run
+    the compiled batch program of the one-recording ``core`` (``shard_map`` over the mesh if
+    the inputs are batch-sharded; else padded to the batch's size class first)."""
     times, positions, quaternions, render_times = (
         _as_array(x) for x in (times, positions, quaternions, render_times))
     b, n = times.shape[:-1], times.shape[-1]
@@ -137,9 +148,16 @@ def run_batch(kind, config, times, positions, quaternions, render_times, dtype):
             raise ValueError("a sharded batch needs times, positions, quaternions (and per-"
                              "recording render times) all sharded along axis 0 on the same "
                              "mesh: shard them together with phjax.batch.shard_batch")
-    static = {"kind": kind, "dtype": dtype}
-    fn = _local_jit if sharding is None else _sharded_function(_local, sharding, args, static)
-    key = (jax.tree.structure(config), kind, dtype,
-           tuple((a.shape, a.dtype) for a in args[1:]))
-    _bounded_cache(fn, key)
-    return fn(*args, **static) if sharding is None else fn(*args)
+    static = {"core": core, "hold_end": hold_end, "dtype": dtype}
+    if sharding is not None:
+        fn = _sharded_function(_local, sharding, args, static)
+    else:
+        fn = _local_jit
+        padded, m = _pad_to_class(*args[1:])
+        args = (config, *padded)
+    key = (jax.tree.structure(config), core, dtype, tuple((a.shape, a.dtype) for a in args[1:]))
+    bounded_cache(fn, key)
+    if sharding is not None:
+        return fn(*args)
+    p, q = fn(*args, **static)
+    return p[..., :m, :], q[..., :m, :]

@@ -31,6 +31,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
+from .._jit import jit
 from .._misc import safe_div, safe_norm
 from .._np_quat import np_from_rotvec as _np_from_rotvec
 from .._np_quat import np_hemisphere as _np_hemisphere
@@ -163,7 +164,7 @@ def _hold_channel(x: Array, valid: Array, k: Array) -> Array:
                      jnp.asarray(jnp.nan, x.dtype))
 
 
-@jax.jit
+@jit
 def hold(
     times: Float[ArrayLike, " n"],
     positions: Float[ArrayLike, "n 3"],
@@ -196,7 +197,7 @@ def _alpha(te, cutoff):
     return r / (r + 1)
 
 
-@jax.jit
+@jit
 def one_euro(
     times: Float[ArrayLike, " n"],
     positions: Float[ArrayLike, "n 3"],
@@ -444,7 +445,7 @@ def _predict_from_latest(t, states, r, predict):
     return pos + nan, quat + nan
 
 
-@jax.jit
+@jit
 def _kalman_extrapolation_core(config, t, p, q, r):
     from .kalman import kalman_filter, predict_pose
 
@@ -472,7 +473,7 @@ def _extrapolate(times, valid_p, valid_q, xs, vs, qs, ws, render_times):
     return out[0], out[1]
 
 
-@jax.jit
+@jit
 def alpha_beta(
     times: Float[ArrayLike, " n"],
     positions: Float[ArrayLike, "n 3"],
@@ -533,7 +534,7 @@ def alpha_beta(
     return _extrapolate(t, vp, vq, xs, vs, qs, ws, render_times.astype(dtype))
 
 
-@jax.jit
+@jit
 def one_euro_extrapolation(
     times: Float[ArrayLike, " n"],
     positions: Float[ArrayLike, "n 3"],
@@ -594,7 +595,7 @@ def snapshot_interpolation(
     return _run_recording(_snapshot_jit, cfg, times, positions, quaternions, render_times, None)
 
 
-@jax.jit
+@jit
 def _snapshot_jit(cfg, t, p, q, r):
     config, delay = cfg
     return _snapshot_core(config, t, p, q, r, jnp.asarray(delay, t.dtype))
@@ -641,7 +642,7 @@ def imm_extrapolation(
                           render_times, None)
 
 
-@jax.jit
+@jit
 def _imm_extrapolation_core(config, t, p, q, r):
     from .imm import imm_filter, imm_predict_pose
 

@@ -48,6 +48,7 @@ import jax.numpy as jnp
 from jax.nn import logsumexp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .._jit import jit
 from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize
 from .kalman import (
     _block,
@@ -511,7 +512,7 @@ def imm_step(
     return new, info
 
 
-@jax.jit
+@jit
 def imm_filter(
     config: IMMConfig,
     times: Float[ArrayLike, " n"],

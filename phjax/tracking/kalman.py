@@ -69,6 +69,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .._jit import jit
 from .._misc import dot_last
 from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
 
@@ -607,7 +608,7 @@ def _finish(config, state, t, updated, p_meas, q_meas, valid, ok, innovation, co
     return new_state, info
 
 
-@jax.jit
+@jit
 def kalman_step(
     config: KalmanConfig,
     state: KalmanState,
@@ -620,7 +621,7 @@ def kalman_step(
 
 
 
-@jax.jit
+@jit
 def kalman_filter(
     config: KalmanConfig,
     times: Float[ArrayLike, " n"],
@@ -663,7 +664,7 @@ def kalman_filter(
     return states, infos
 
 
-@jax.jit
+@jit
 def rts_smooth(config: KalmanConfig, filtered_states: KalmanState) -> KalmanState:
     """Rauch-Tung-Striebel smoother for the output of :func:`kalman_filter`.
 

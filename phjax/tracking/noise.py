@@ -40,10 +40,10 @@ import dataclasses
 import functools
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .._jit import jit
 from ..quaternion import quat_conj, quat_mul, quat_to_rotvec
 from .tracker import TrackerConfig
 
@@ -129,7 +129,7 @@ def estimate_measurement_noise(
     return _estimate(t.astype(dtype), p.astype(dtype), q.astype(dtype), k)
 
 
-@functools.partial(jax.jit, static_argnums=3)
+@functools.partial(jit, static_argnums=3)
 def _estimate(t, p, q, k: int) -> MeasurementNoise:
     n, dtype = t.shape[0], t.dtype
     idx = jnp.arange(n - k)[:, None] + jnp.arange(k + 1)[None, :]  # (w, k+1)

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from .._jit import jit
 from .tracker import (
     TrackerConfig,
     TrackerState,
@@ -47,13 +48,13 @@ def _on_leaves(fn, config_def, state_def):
         state = jax.tree.unflatten(state_def, state_leaves)
         return jax.tree.leaves(fn(config, state, *args))
 
-    return jax.jit(on_leaves)
+    return jit(on_leaves)
 
 
 @functools.cache
 def _sample_on_leaves(segment_def):
     """``jit(_sample)`` on the flat leaf list of a render segment."""
-    return jax.jit(lambda leaves, t: _sample(jax.tree.unflatten(segment_def, leaves), t))
+    return jit(lambda leaves, t: _sample(jax.tree.unflatten(segment_def, leaves), t))
 
 
 class TrackerStream:

@@ -49,7 +49,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .._jit import jit
 from ._batch import run_batch
+from ._shapes import bounded_cache, pad_recording
 from .imm import IMMConfig, imm_predict_pose, imm_step, imm_uninitialized
 from .kalman import (
     KalmanConfig,
@@ -318,7 +320,7 @@ def _sample(segment: RenderSegment, t_render):
     return p.reshape(tau.shape + (3,)), q.reshape(tau.shape + (4,))
 
 
-_sample_render = jax.jit(_sample)
+_sample_render = jit(_sample)
 
 
 def _filter_uninitialized(config: TrackerConfig, t, dtype):
@@ -413,7 +415,7 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion)
     return jax.tree.map(lambda a, b: jnp.where(rebuild, a, b), new, keep)
 
 
-@jax.jit
+@jit
 def tracker_update(
     config: TrackerConfig,
     state: TrackerState,
@@ -497,42 +499,26 @@ def _prepare_recording(times, positions, quaternions, render_times):
     return times - origin, positions, quaternions, render_times - origin, orientation_only
 
 
-#: compiled versions (recording shapes) kept per batch entry point, see :func:`_bounded_cache`
-_MAX_COMPILED_SHAPES = 4
-_COMPILED_KEYS: dict = {}
-
-
-def _bounded_cache(core, key) -> None:
-    """Keep at most ``_MAX_COMPILED_SHAPES`` compiled versions of the jitted ``core``.
-
-    Every recording length compiles the whole scan again, and XLA:CPU maps the code of one
-    compiled stream into about 1200 memory regions (``/proc/self/maps``, float64 track),
-    which are released only with the executable. Linux allows a process 65530 of them
-    (``vm.max_map_count``), i.e. about 50 distinct lengths; then mmap fails inside XLA's
-    compiler and the process dies (reproduced with the limit lowered to 8000: LLVM "Cannot
-    allocate memory", segfault at the sixth length). Before a new shape would exceed the
-    bound, ``core``'s compilation cache is cleared.
-    """
-    keys = _COMPILED_KEYS.setdefault(core, set())
-    if key not in keys and max(len(keys), core._cache_size()) >= _MAX_COMPILED_SHAPES:
-        core.clear_cache()
-        keys.clear()
-    keys.add(key)
-
-
-def _run_recording(core, config, times, positions, quaternions, render_times, dtype):
-    """Validate and normalise a recording (outside jit), run a jitted ``core`` on it."""
+def _run_recording(core, config, times, positions, quaternions, render_times, dtype,
+                   hold_end=False):
+    """Validate and normalise a recording (outside jit), pad it to its size class
+    (:mod:`phjax.tracking._shapes`: one compiled program per class, not per length) and run the
+    jitted ``core`` on it. ``hold_end``: the core interpolates between frames (render times past
+    the last frame are clamped to it)."""
     t, p, q, r, orientation_only = _prepare_recording(times, positions, quaternions, render_times)
+    m = r.shape[0]
+    t, p, q, r = pad_recording(t, p, q, r, hold_end=hold_end)
     dtype = jnp.zeros((), float).dtype if dtype is None else dtype
     args = [jnp.asarray(x, dtype) for x in (t, p, q, r)]
-    _bounded_cache(core, (jax.tree.structure(config), tuple(a.shape for a in args), args[0].dtype))
+    bounded_cache(core, (jax.tree.structure(config), tuple(a.shape for a in args), args[0].dtype))
     out_p, out_q = core(config, *args)
+    out_p, out_q = out_p[:m], out_q[:m]
     if orientation_only:
         out_p = jnp.full_like(out_p, jnp.nan)
     return out_p, out_q
 
 
-@jax.jit
+@jit
 def _track_core(config, times, positions, quaternions, render_times):
     config = TrackerConfig() if config is None else config
     dtype = times.dtype
@@ -570,9 +556,11 @@ def track(
 
     Equivalent to calling :func:`tracker_update` for each measurement and
     :func:`tracker_sample` at each render time: the output at ``tau`` uses only measurements
-    with ``t <= tau``. Each new pair of lengths ``(N, M)`` (batch shape included) compiles the
-    scan (seconds); at most four shapes stay compiled (more would exhaust the process's memory
-    mappings, see ``_bounded_cache``).
+    with ``t <= tau``. Inputs are padded to a size class (the next power of two of ``N`` and
+    of ``M``, :mod:`phjax.tracking._shapes`), so recordings of different lengths in one class
+    share one compiled program and the results equal the unpadded ones; at most four classes
+    stay compiled (more would exhaust the process's memory mappings, see
+    :func:`phjax.tracking._shapes.bounded_cache`).
 
     **Batches** (leading axes ``B``, one compiled program for the whole batch): recordings
     NaN-padded to a common length ``N`` (:func:`phjax.batch.pad_recordings`). Padding rule: a
@@ -600,11 +588,11 @@ def track(
         measurement (and at padded render times).
     """
     if jnp.ndim(times) > 1:
-        return run_batch("track", config, times, positions, quaternions, render_times, dtype)
+        return run_batch(_track_core, config, times, positions, quaternions, render_times, dtype)
     return _run_recording(_track_core, config, times, positions, quaternions, render_times, dtype)
 
 
-@jax.jit
+@jit
 def _reconstruct_core(config, times, positions, quaternions, render_times):
     config = TrackerConfig() if config is None else config
     dtype = times.dtype
@@ -655,5 +643,7 @@ def reconstruct(
         ``(positions (*B, M, 3), quaternions (*B, M, 4))``.
     """
     if jnp.ndim(times) > 1:
-        return run_batch("reconstruct", config, times, positions, quaternions, render_times, dtype)
-    return _run_recording(_reconstruct_core, config, times, positions, quaternions, render_times, dtype)
+        return run_batch(_reconstruct_core, config, times, positions, quaternions, render_times,
+                         dtype, hold_end=True)
+    return _run_recording(_reconstruct_core, config, times, positions, quaternions, render_times,
+                          dtype, hold_end=True)

@@ -27,10 +27,11 @@ from __future__ import annotations
 import functools
 from typing import Any, NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from .._jit import jit
 
 __all__ = [
     "Keypoints",
@@ -238,7 +239,7 @@ def match_descriptors(
                   metric, ratio, mutual, max_distance)
 
 
-@functools.partial(jax.jit, static_argnames=("metric", "mutual"))
+@functools.partial(jit, static_argnames=("metric", "mutual"))
 def _match(query, train, query_valid, train_valid, metric, ratio, mutual, max_distance):
     ka, kb = query.shape[0], train.shape[0]
     qv = jnp.ones(ka, bool) if query_valid is None else query_valid
@@ -317,7 +318,7 @@ def lift_keypoints(
                  min_depth, max_depth, edge_abs, edge_rel, min_valid)
 
 
-@jax.jit
+@jit
 def _lift(uv, depth, valid, fx, fy, cx, cy, min_depth, max_depth, edge_abs, edge_rel, min_valid):
     z, nb = _depth_at(depth, uv)
     nb_ok = (nb >= min_depth) & (nb <= max_depth)

@@ -61,6 +61,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from .._jit import jit
 from .._np_quat import np_qconj, np_qmul, np_qnormalize, np_rotvec
 from .alignment import OK as ALIGN_OK
 from .alignment import align, ransac_align
@@ -422,12 +423,12 @@ class _K(NamedTuple):
     cy: Any
 
 
-@functools.partial(jax.jit, static_argnames=("cfg",))
+@functools.partial(jit, static_argnames=("cfg",))
 def _observe(depth, k4, kp_uv, kp_valid, desc, lm_uv, lm_valid, crop, cfg):
     return _frame_arrays(depth, k4, kp_uv, kp_valid, desc, lm_uv, lm_valid, crop, cfg)
 
 
-@functools.partial(jax.jit, static_argnames=("cfg",))
+@functools.partial(jit, static_argnames=("cfg",))
 def _make_keyframe(frame: _Frame, quaternion, position, index, cfg) -> _Keyframe:
     key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed + 1), index)
     pts = frame.grid.reshape(-1, 3)
@@ -453,7 +454,7 @@ def _schedule(cfg: _JaxConfig, dtype) -> Array:
     return jnp.asarray(np.geomspace(a, b, n), dtype)
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "metric"))
+@functools.partial(jit, static_argnames=("cfg", "metric"))
 def _estimate(kf: _Keyframe, fr: _Frame, pred_q, pred_t, has_pred, index, cfg, metric
               ) -> _Estimate:
     dtype = fr.kp_points.dtype
@@ -986,7 +987,7 @@ _REFINE_PRESETS = {
 }
 
 
-@functools.partial(jax.jit, static_argnames=("metric", "iterations", "depth_power",
+@functools.partial(jit, static_argnames=("metric", "iterations", "depth_power",
                                              "max_matches"))
 def _pair_core(key, pa, oka, da, pb, okb, db, ratio, threshold, metric, iterations, depth_power,
                max_matches):
@@ -1018,7 +1019,7 @@ def _lifted_covariance(p: np.ndarray, intr, cfg: DenseRefinement) -> np.ndarray:
     return cov
 
 
-@functools.partial(jax.jit, static_argnames=("cfg",))
+@functools.partial(jit, static_argnames=("cfg",))
 def _dense_refine(depth_a, depth_b, k4, q0, t0, schedules, pairs, cfg: DenseRefinement):
     """Coarse-to-fine projective point-to-plane ICP of ``a``'s depth onto ``b``'s (with the
     fixed feature pairs in every level, or None: ``pairs = (src, tgt, information)``, ``tgt``

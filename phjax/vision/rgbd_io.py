@@ -47,11 +47,11 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .._jit import jit
 from ..io import Trajectory, biwi_pose_to_quaternion, read_biwi_pose
 
 __all__ = [
@@ -445,7 +445,7 @@ def read_biwi_calibration(path: PathLike) -> BiwiCalibration:
     return BiwiCalibration(CameraIntrinsics.from_matrix(k, int(w), int(h)), vals[9:13], r, t)
 
 
-@jax.jit
+@jit
 def _register(depth, src_k, dst_k, rotation, translation, dst_zero):
     h, w = depth.shape
     hh, ww = dst_zero.shape

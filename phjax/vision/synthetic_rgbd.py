@@ -53,6 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .._jit import jit
 from .._np_quat import np_from_rotvec, np_qconj, np_qmul, np_rotvec
 from .icp import PinholeIntrinsics
 from ..quaternion import quat_rotate
@@ -417,7 +418,7 @@ def _wall_tex() -> np.ndarray:
 _LIGHT = np.array([-0.35, -0.55, -1.0]) / np.linalg.norm([-0.35, -0.55, -1.0])
 
 
-@functools.partial(jax.jit, static_argnames=("height", "width"))
+@functools.partial(jit, static_argnames=("height", "width"))
 def _wall_jit(wall_tex, intr, wall, *, height, width):
     """Colour (float, [0, 1]) and depth of the textured background plane ``n . X = d``."""
     f32 = jnp.float32
@@ -431,7 +432,7 @@ def _wall_jit(wall_tex, intr, wall, *, height, width):
     return color, depth
 
 
-@functools.partial(jax.jit, static_argnames=("crop", "n_march", "n_refine"))
+@functools.partial(jit, static_argnames=("crop", "n_march", "n_refine"))
 def _render_jit(model, wall_color, wall_depth, position, quaternion, intr, crop_origin, *,
                 crop, n_march, n_refine):
     """Composite the head, ray cast in a ``crop`` x ``crop`` window, over the wall images."""
@@ -540,7 +541,7 @@ _NOISE_STATIC = ("focal", "baseline", "sigma_disparity", "subpixel", "edge_thres
                  "edge_dropout", "dropout", "z_range")
 
 
-@functools.partial(jax.jit, static_argnames=_NOISE_STATIC)
+@functools.partial(jit, static_argnames=_NOISE_STATIC)
 def add_depth_noise(
     key: Array,
     depth: Float[ArrayLike, "h w"],
@@ -659,7 +660,7 @@ def _crop_origin(p, k, crop, width, height) -> np.ndarray:
     return np.array([r0, c0])
 
 
-@functools.partial(jax.jit, static_argnames=("crop", "depth_noise", "focal", "noisy_color"))
+@functools.partial(jit, static_argnames=("crop", "depth_noise", "focal", "noisy_color"))
 def _frame_jit(model, wall_color, wall_depth, position, quaternion, intr, crop_origin, key,
                color_noise, *, crop, depth_noise, focal, noisy_color):
     """Render + sensor noise + 8-bit conversion in one compiled call."""

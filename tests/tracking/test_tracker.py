@@ -459,22 +459,64 @@ def test_bad_input_messages():
 
 
 def test_compiled_shapes_are_bounded(head, monkeypatch):
-    """Each recording length compiles the scan; at most ``_MAX_COMPILED_SHAPES`` stay compiled,
-    so many lengths in one process do not exhaust its memory mappings (XLA:CPU maps ~1200
+    """Each size class compiles the scan; at most ``MAX_COMPILED_SHAPES`` stay compiled, so
+    many classes in one process do not exhaust its memory mappings (XLA:CPU maps ~1200
     regions per compiled stream; Linux allows 65530), and results do not change."""
     from conftest import mapping_count
 
+    from phjax.tracking import _shapes
+
     _, _, _, mt, mp, mq = head
-    monkeypatch.setattr(tracker, "_MAX_COMPILED_SHAPES", 2)
+    monkeypatch.setattr(_shapes, "MAX_COMPILED_SHAPES", 2)
     tracker._track_core.clear_cache()
-    tracker._COMPILED_KEYS.pop(tracker._track_core, None)
+    _shapes._COMPILED_KEYS.pop(tracker._track_core, None)
 
     r = np.linspace(mt[0], mt[10], 50)
     outs, counts = [], []
-    for n in (12, 13, 14, 12):
+    for n in (12, 100, 200, 12):  # size classes 64, 128, 256, 64
         outs.append(np.asarray(pj.track(mt[:n], mp[:n], mq[:n], r, dtype=jnp.float64)[0]))
         counts.append(mapping_count())
         assert tracker._track_core._cache_size() <= 2
     np.testing.assert_array_equal(outs[3], outs[0])  # recompiled after eviction: same result
     if counts[0]:  # Linux: /proc/self/maps exists
         assert counts[1] > counts[0] and counts[2] < counts[1]  # the third shape evicted two
+
+
+def test_lengths_in_one_size_class_share_one_program_and_equal_unpadded(head):
+    """Recordings of different lengths in one size class run on one compiled program (no
+    compilation for the second: counted with JAX's compile events), and padding changes no
+    result: each equals the core run on the unpadded arrays (float64, 1e-12)."""
+    import jax.monitoring
+
+    from phjax.tracking import _shapes
+
+    _, _, _, mt, mp, mq = head
+    compiles = []
+
+    def on_duration(event, duration, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(duration)
+
+    r = np.linspace(mt[0] + 0.05, mt[90] + 0.3, 333)  # also past the shorter recording's end
+    assert _shapes.size_class(70, _shapes.MIN_FRAMES) == _shapes.size_class(90, _shapes.MIN_FRAMES)
+    pj.track(mt[:70], mp[:70], mq[:70], r, dtype=jnp.float64)  # compiles the class if needed
+    jax.monitoring.register_event_duration_secs_listener(on_duration)
+    try:
+        for fn, checked in ((pj.track, 90), (pj.reconstruct, 70)):
+            for n in (70, 90):
+                got = fn(mt[:n], mp[:n], mq[:n], r, dtype=jnp.float64)
+                if n != checked:
+                    continue
+                compiled = len(compiles)
+                hold = fn is pj.reconstruct
+                core = tracker._reconstruct_core if hold else tracker._track_core
+                t0 = mt[0]
+                ref = core(None, *(jnp.asarray(x) for x in (mt[:n] - t0, mp[:n], mq[:n])),
+                           jnp.asarray((np.minimum(r, mt[n - 1]) if hold else r) - t0))
+                for a, b in zip(got, ref):
+                    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)
+                del compiles[compiled:]  # the unpadded reference compiles; padding must not
+    finally:
+        jax.monitoring.unregister_event_duration_listener(on_duration)
+    # one compile at most: reconstruct's class (track's was compiled before listening)
+    assert len(compiles) <= 1, compiles

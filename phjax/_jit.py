@@ -1,0 +1,59 @@
+"""How phjax compiles: ``jax.jit`` with XLA options chosen for compile time (one place).
+
+phjax's programs are many small element-wise operations on 3- and 4-vectors (quaternions, 3 x 3
+covariances), so XLA:CPU spends most of a compilation generating and optimising one machine
+kernel per fusion (about 460 of them in one tracker update). XLA:CPU's newer MLIR "fusion
+emitters" take about 1.7 x as long per kernel as the classic LLVM IR emitters for these
+programs, with no faster code: the tracker update compiled in 14 s of CPU time instead of 24 s
+with the same latency, and large ``hermite_quintic`` batches ran 1.5 x faster
+(``benchmarks/bench_startup.py``, ``benchmarks/README.md``). :func:`jit` is ``jax.jit`` with
+those emitters turned off for the program it compiles; nothing global changes (other programs in
+the process, ``XLA_FLAGS``), and other backends ignore the CPU option.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+
+try:  # JAX's own test for "not inside a trace" (private; a public fallback below)
+    from jax._src.core import trace_state_clean as _top_level
+except ImportError:  # pragma: no cover - depends on the JAX version
+    def _top_level() -> bool:
+        return not isinstance(jax.numpy.zeros(()), jax.core.Tracer)
+
+__all__ = ["COMPILER_OPTIONS", "jit"]
+
+#: XLA options of every program phjax compiles (see the module docs)
+COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+
+class _Jitted:
+    """A function jitted twice: with :data:`COMPILER_OPTIONS` when called at top level (it is
+    then the program XLA compiles), plainly inside another trace (JAX accepts compiler options
+    only on the outermost ``jit``; the outer program's options apply). Attributes such as
+    ``lower``, ``trace``, ``clear_cache`` are the top-level version's."""
+
+    def __init__(self, fun, kwargs):
+        self._top = jax.jit(fun, compiler_options=COMPILER_OPTIONS, **kwargs)
+        self._nested = jax.jit(fun, **kwargs)
+        functools.update_wrapper(self, fun)
+
+    def __call__(self, *args, **kwargs):
+        return (self._top if _top_level() else self._nested)(*args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self._top, name)
+
+    def clear_cache(self) -> None:
+        self._top.clear_cache()
+        self._nested.clear_cache()
+
+
+def jit(fun=None, /, **kwargs):
+    """``jax.jit(fun, **kwargs)`` compiled with :data:`COMPILER_OPTIONS`; usable as a
+    decorator, bare or through ``functools.partial(jit, static_argnames=...)``."""
+    if fun is None:
+        return functools.partial(jit, **kwargs)
+    return _Jitted(fun, kwargs)
