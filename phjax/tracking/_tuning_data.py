@@ -1,0 +1,306 @@
+"""Recordings for the tuning loss (:mod:`phjax.tracking.tuning`): :class:`TuningData` and the
+functions that build it, from ground truth with simulated measurements
+(:func:`prepare_recordings`) or from given measurements (:func:`tuning_data`,
+:func:`measured_recording`), with the reference stream's scores and the padding to common lengths.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from ..motion.simulate import SensorModel
+from ._tuning_stream import stream_metrics
+from .kalman import KalmanConfig
+
+
+class TuningData(eqx.Module):
+    """Recordings prepared for the loss, padded to common lengths and stacked (axis 0 = recording).
+
+    Built by :func:`prepare_recordings` (simulated measurements) or :func:`tuning_data` (given
+    measurements). Times are relative to each recording's first measurement, positions to its
+    first known ground-truth position at a render time.
+
+    Fields:
+        times: ``(R, N)`` measurement times, s (padding: NaN frames after the end).
+        positions: ``(R, N, 3)`` measured positions, m (NaN = lost frame).
+        quaternions: ``(R, N, 4)`` measured orientations, wxyz.
+        render_times: ``(R, M)`` render times, s.
+        render_mask: ``(R, M)`` render samples that count (``False`` for padding).
+        gt_positions: ``(R, M, 3)`` ground truth at the render times (NaN in ground-truth gaps
+            and for orientation-only recordings).
+        gt_quaternions: ``(R, M, 4)`` ground-truth orientations at the render times.
+        reference: ``(R, 4)`` ``[E_p, E_r, J_p, J_r]`` of the reference stream (m, rad, m/s^3,
+            rad/s^3), NaN where a term is unavailable (e.g. positions of orientation-only data).
+    """
+
+    times: Float[Array, "R N"]
+    positions: Float[Array, "R N 3"]
+    quaternions: Float[Array, "R N 4"]
+    render_times: Float[Array, "R M"]
+    render_mask: Bool[Array, "R M"]
+    gt_positions: Float[Array, "R M 3"]
+    gt_quaternions: Float[Array, "R M 4"]
+    reference: Float[Array, "R 4"]
+
+    @property
+    def num_recordings(self) -> int:
+        return int(self.times.shape[0])
+
+
+def _as_traj(rec, name="ground-truth"):
+    t, p, q = (np.asarray(x, np.float64) for x in (rec[0], rec[1], rec[2]))
+    if t.ndim != 1 or p.shape != (t.shape[0], 3) or q.shape != (t.shape[0], 4) or t.size < 2:
+        raise ValueError(f"each {name} recording must be (times (n,), positions (n, 3), "
+                         "quaternions (n, 4)) "
+                         f"with n >= 2; got shapes {t.shape}, {p.shape}, {q.shape}")
+    if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+        raise ValueError(f"{name} times must be finite and strictly increasing")
+    return t, p, q
+
+
+def prepare_recordings(
+    ground_truths: Sequence,
+    *,
+    sensor: SensorModel | None = None,
+    render_rate: float = 120.0,
+    seed: int = 0,
+    seconds: float | None = None,
+    reference_config: KalmanConfig | None = None,
+    max_gt_gap: float = 0.1,
+    dtype=None,
+) -> TuningData:
+    """Simulate measurements from ground-truth trajectories and stack them for :func:`tracker_loss`.
+
+    Arguments:
+        ground_truths: sequence of ``(times, positions, quaternions)`` (e.g.
+            :class:`phjax.io.Trajectory`), or one NaN-padded batch ``(times (R, n),
+            positions (R, n, 3), quaternions (R, n, 4))`` (:func:`phjax.batch.pad_recordings`);
+            NaN positions = orientation-only.
+        sensor: the :class:`~phjax.SensorModel` (default ``SensorModel()``: 30 Hz, 5 mm,
+            1 degree, 5 % dropouts).
+        render_rate: render rate, Hz.
+        seed: recording ``i`` is sampled with seed ``seed + i`` (deterministic loss).
+        seconds: keep only the first ``seconds`` of each recording (``None``: all).
+        reference_config: Kalman noise of the reference stream used for normalisation (default
+            the tuned values :data:`phjax.tracking.baselines.TUNED` ``["kalman"]``).
+        max_gt_gap: render samples inside ground-truth gaps longer than this (s) are ignored.
+        dtype: floating dtype of the arrays (default: JAX's default float).
+
+    Returns:
+        A :class:`TuningData`.
+    """
+    from ..motion.resample import interpolate_poses, snap_to_frames
+    from ..motion.simulate import simulate_measurements
+
+    sensor = SensorModel() if sensor is None else sensor
+    if not render_rate > 0:
+        raise ValueError(f"render_rate must be positive, got {render_rate}")
+    if (isinstance(ground_truths, tuple) and len(ground_truths) == 3
+            and np.ndim(ground_truths[0]) == 2):  # a NaN-padded batch (times (R, n), ...)
+        from ..batch import unpad
+
+        ground_truths = unpad(*ground_truths)
+    if len(ground_truths) == 0:
+        raise ValueError("need at least one recording")
+    recs = []
+    for i, rec in enumerate(ground_truths):
+        t, p, q = _as_traj(rec)
+        t = t - t[0]
+        if seconds is not None:
+            keep = t <= seconds
+            t, p, q = t[keep], p[keep], q[keep]
+        frames = simulate_measurements(seed + i, t, p, q, sensor)
+        mt, mp, mq = (np.asarray(x, np.float64) for x in frames)
+        ok = np.isfinite(mq).all(-1)
+        if not ok.any():
+            raise ValueError(f"recording {i}: the simulated sensor produced no valid measurement")
+        start = mt[ok][0] + 1.0 / float(sensor.rate)
+        # snapped with the simulated times' own rounding (float32 without jax_enable_x64)
+        r = snap_to_frames(np.asarray(frames[0]), np.arange(start, t[-1], 1.0 / render_rate))
+        if r.size < 4:
+            raise ValueError(f"recording {i} is too short ({t[-1]:.3g} s) for the jerk terms")
+        gp, gq = interpolate_poses(t, p, q, r, max_gap=max_gt_gap)
+        recs.append((mt, mp, mq, r, gp, gq))
+    return tuning_data(recs, reference_config=reference_config, dtype=dtype)
+
+
+def _as_measured(i, rec):
+    """Checked float64 arrays of one recording of :func:`tuning_data`: render times snapped
+    onto coincident frame times (with the frame times' own rounding), repeated measurement
+    times dropped (the first kept, as :func:`phjax.track` does)."""
+    from ..motion.resample import snap_to_frames
+
+    if len(rec) != 6:
+        raise ValueError(f"recording {i}: expected (times, positions, quaternions, render_times, "
+                         f"gt_positions, gt_quaternions), got {len(rec)} items")
+    t, p, q, r, gp, gq = (np.asarray(x, np.float64) for x in rec)
+    n, m = t.shape[0] if t.ndim == 1 else -1, r.shape[0] if r.ndim == 1 else -1
+    if (n < 1 or p.shape != (n, 3) or q.shape != (n, 4) or m < 0 or gp.shape != (m, 3)
+            or gq.shape != (m, 4)):
+        raise ValueError(f"recording {i}: shapes must be times (n,), positions (n, 3), "
+                         "quaternions (n, 4), render_times (m,), gt_positions (m, 3), "
+                         f"gt_quaternions (m, 4); got {t.shape}, {p.shape}, {q.shape}, "
+                         f"{r.shape}, {gp.shape}, {gq.shape}")
+    if not np.all(np.isfinite(t)) or np.any(np.diff(t) < 0):
+        raise ValueError(f"recording {i}: measurement times must be finite and non-decreasing")
+    if m < 4 or not np.all(np.isfinite(r)) or np.any(np.diff(r) <= 0):
+        raise ValueError(f"recording {i}: render times must be finite, strictly increasing and "
+                         f"at least 4 (for the jerk terms); got {m}")
+    if not (np.isfinite(q).all(-1) & (np.linalg.norm(q, axis=-1) > 0)).any():
+        raise ValueError(f"recording {i}: no valid orientation measurement")
+    r = snap_to_frames(np.asarray(rec[0]), r)
+    first = np.concatenate([[True], np.diff(t) > 0])
+    return t[first], p[first], q[first], r, gp, gq
+
+
+def measured_recording(
+    ground_truth,
+    measurements,
+    *,
+    render_rate: float = 120.0,
+    seconds: float | None = None,
+    align: bool = False,
+    max_gt_gap: float = 0.1,
+) -> tuple[np.ndarray, ...]:
+    """One recording of :func:`tuning_data` from a real pose stream and its ground truth.
+
+    Arguments:
+        ground_truth: ``(times, positions, quaternions)`` (e.g. :class:`phjax.io.Trajectory`
+            of a motion-capture file; NaN positions = orientation only).
+        measurements: ``(times, positions, quaternions)`` of the stream the tracker will see
+            (e.g. a SLAM or head-pose estimate), on the ground truth's clock.
+        render_rate: render rate, Hz; render times run from one median frame interval after
+            the first valid measurement to the last measurement, inside the ground truth.
+        seconds: keep only the first ``seconds`` of the measurements (``None``: all).
+        align: first move the measurements into the ground truth's frame by the rigid
+            transform that best maps their positions onto the ground truth interpolated at
+            their times (:func:`phjax.vision.alignment.align`; evo's SE(3) Umeyama alignment),
+            applied to positions and orientations. Without it they must be in that frame.
+        max_gt_gap: ground truth inside gaps longer than this (s) is unknown (NaN).
+
+    Returns:
+        ``(times, positions, quaternions, render_times, gt_positions, gt_quaternions)``.
+
+    Raises:
+        ValueError: malformed input, no overlap with the ground truth, or too few render
+            samples.
+    """
+    from ..motion.resample import interpolate_poses
+    from ..quaternion import quat_mul
+
+    gt_t, gt_p, gt_q = _as_traj(ground_truth)
+    t, p, q = _as_traj(measurements, "measurement")
+    if seconds is not None:
+        keep = t - t[0] <= seconds
+        t, p, q = t[keep], p[keep], q[keep]
+    # JAX sees times relative to the ground truth's start (Unix times in float32 would be
+    # rounded to minutes when jax_enable_x64 is off)
+    o = gt_t[0]
+    if align:
+        from ..vision.alignment import AlignmentStatus
+        from ..vision.alignment import align as rigid_fit
+
+        at_t, _ = interpolate_poses(gt_t - o, gt_p, gt_q, t - o, max_gap=max_gt_gap)
+        inside = (t >= gt_t[0]) & (t <= gt_t[-1])
+        fit = rigid_fit(p, np.where(inside[:, None], np.asarray(at_t), np.nan))
+        if int(fit.status) != AlignmentStatus.OK:
+            raise ValueError("align: the measured positions do not determine a rigid transform "
+                             "onto the ground truth (too few, or collinear, overlapping poses)")
+        rot, trans, qr = (np.asarray(x, np.float64)
+                          for x in (fit.rotation, fit.translation, fit.quaternion))
+        p = p @ rot.T + trans
+        q = np.asarray(quat_mul(qr, q), np.float64)
+    ok = np.isfinite(q).all(-1)
+    if not ok.any():
+        raise ValueError("measurements: no valid orientation")
+    frame = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    start = max(t[ok][0] + frame, gt_t[0])
+    r = np.arange(start, min(t[-1], gt_t[-1]), 1.0 / render_rate)
+    if r.size < 4:
+        raise ValueError(f"measurements and ground truth overlap for too short a time "
+                         f"({max(0.0, min(t[-1], gt_t[-1]) - start):.3g} s) for the jerk terms")
+    gp, gq = (np.asarray(x, np.float64)
+              for x in interpolate_poses(gt_t - o, gt_p, gt_q, r - o, max_gap=max_gt_gap))
+    return t, p, q, r, gp, gq
+
+
+def tuning_data(
+    recordings: Sequence,
+    *,
+    reference_config: KalmanConfig | None = None,
+    dtype=None,
+) -> TuningData:
+    """Stack recordings whose measurements are given (real or simulated) for :func:`tracker_loss`.
+
+    Use it to tune on a real pose stream (e.g. a SLAM or face-tracking estimate expressed in
+    the ground truth's frame); :func:`prepare_recordings` simulates the measurements instead.
+    Times are made relative to each recording's first measurement and positions to its first
+    known ground-truth position (the tracker is equivariant to both; this keeps float32 and
+    the jerk terms accurate with e.g. Unix timestamps). Render times that equal a frame time up
+    to rounding are set to it (:func:`phjax.motion.resample.snap_to_frames`), so a sample
+    rendered at a frame's own instant sees that frame.
+
+    Arguments:
+        recordings: sequence of ``(times (n,), positions (n, 3), quaternions (n, 4),
+            render_times (m,), gt_positions (m, 3), gt_quaternions (m, 4))``: the camera-rate
+            measurements in s, m, wxyz (non-decreasing times, repeats dropped as by
+            :func:`phjax.track`; NaN = lost frame; positions all
+            NaN = orientation only, tracked as a fixed point like :func:`phjax.track`), the
+            render times (strictly increasing, at least 4) and the ground truth at them (NaN
+            where unknown: those samples do not count).
+        reference_config: Kalman noise of the reference stream used for normalisation (default
+            the tuned values :data:`phjax.tracking.baselines.TUNED` ``["kalman"]``).
+        dtype: floating dtype of the arrays (default: JAX's default float).
+
+    Returns:
+        A :class:`TuningData` (recordings padded to common lengths and stacked).
+    """
+    from .baselines import TUNED, kalman_extrapolation
+
+    if reference_config is None:
+        reference_config = KalmanConfig(**TUNED["kalman"])
+    if len(recordings) == 0:
+        raise ValueError("need at least one recording")
+    recs = []
+    for i, rec in enumerate(recordings):
+        mt, mp, mq, r, gp, gq = _as_measured(i, rec)
+        t0 = mt[0]
+        mt, r = mt - t0, r - t0
+        has_pos = np.isfinite(mp).any()
+        known = np.isfinite(gp).all(-1)
+        origin = gp[np.argmax(known)] if known.any() else (
+            mp[np.argmax(np.isfinite(mp).all(-1))] if has_pos else np.zeros(3))
+        mp, gp = mp - origin, gp - origin
+        if not has_pos:  # orientation only: track a fixed point (as track does)
+            ok = np.isfinite(mq).all(-1)
+            mp = np.where(ok[:, None], 0.0, np.nan) * np.ones((1, 3))
+        rp, rq = (np.asarray(x, np.float64)
+                  for x in kalman_extrapolation(mt, mp, mq, r, config=reference_config))
+        if not has_pos:
+            rp = np.full_like(rp, np.nan)
+        ref = np.asarray(stream_metrics(r, rp, rq, gp, gq), np.float64)
+        recs.append((mt, mp, mq, r, gp, gq, np.where(ref > 0, ref, np.nan)))
+    n = max(x[0].size for x in recs)
+    m = max(x[3].size for x in recs)
+    cols = [[] for _ in range(8)]
+    for mt, mp, mq, r, gp, gq, ref in recs:
+        pad_n, pad_m = n - mt.size, m - r.size
+        # padding frames come 1 s after the last real frame and render time; padding render
+        # samples (the only ones that may reach them) are masked out
+        t_pad = max(mt[-1], r[-1]) + 1.0 + np.arange(pad_n)
+        cols[0].append(np.concatenate([mt, t_pad]))
+        cols[1].append(np.concatenate([mp, np.full((pad_n, 3), np.nan)]))
+        cols[2].append(np.concatenate([mq, np.full((pad_n, 4), np.nan)]))
+        cols[3].append(np.concatenate([r, r[-1] + (r[-1] - r[-2]) * np.arange(1, pad_m + 1)]))
+        cols[4].append(np.arange(m) < r.size)
+        cols[5].append(np.concatenate([gp, np.full((pad_m, 3), np.nan)]))
+        cols[6].append(np.concatenate([gq, np.full((pad_m, 4), np.nan)]))
+        cols[7].append(ref)
+    dtype = jnp.zeros((), float).dtype if dtype is None else dtype
+    arr = [jnp.asarray(np.stack(c), bool if k == 4 else dtype) for k, c in enumerate(cols)]
+    return TuningData(*arr)
