@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import jax
@@ -72,6 +74,28 @@ def yunet_models() -> Path:
     if all((cache / name).is_file() for name in YUNET_FILES):
         return cache
     return shared_path("yunet_face_detection")
+
+
+#: the persistent compilation cache shared by this run's processes (set by the controller)
+TEST_CACHE = "PHJAX_TEST_CACHE_DIR"
+
+
+def pytest_configure(config):
+    """One persistent compilation cache for the whole run: the controller (or a run without
+    xdist) makes a fresh folder, its xdist workers inherit it through the environment, so a
+    program compiled by one worker is loaded, not compiled, by the other. Fresh per run: no
+    result of an earlier run (or of other code) is reused. Removed at the end of the run."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        os.environ[TEST_CACHE] = tempfile.mkdtemp(prefix="phjax-test-jax-cache-")
+        config._phjax_cache_owner = True
+    import phjax
+
+    phjax.enable_compilation_cache(os.environ[TEST_CACHE])
+
+
+def pytest_unconfigure(config):
+    if getattr(config, "_phjax_cache_owner", False):
+        shutil.rmtree(os.environ.pop(TEST_CACHE, ""), ignore_errors=True)
 
 
 #: the marker of tests that must have the machine to themselves (see pytest_collection_modifyitems)

@@ -71,6 +71,8 @@ def test_readme_python_blocks_run_in_order(tmp_path):
     env["PHJAX_MODEL_DIR"] = str(tmp_path / "models")  # never touch the user's model cache
     env.setdefault("PHJAX_SHARED_DATA", str(REPO.parent / "shared" / "data"))
     env["MPLBACKEND"] = "Agg"
+    # pj.enable_compilation_cache() in the quickstart: this run's shared cache, not ~/.cache
+    env["PHJAX_CACHE_DIR"] = os.environ.get("PHJAX_TEST_CACHE_DIR") or str(tmp_path / "jax-cache")
     env.pop("JAX_ENABLE_X64", None)
     res = subprocess.run([sys.executable, str(runner), str(blocks), str(REPO / "README.md")],
                          cwd=work, env=env, capture_output=True, text=True, timeout=1200,

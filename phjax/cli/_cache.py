@@ -20,23 +20,12 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
+from .._compilation_cache import MIN_COMPILE_SECONDS, cache_dir, enable_compilation_cache
+
 __all__ = ["MIN_COMPILE_SECONDS", "CacheSession", "cache_dir", "cache_disabled",
            "compilation_cache"]
 
-#: programs that took less than this to compile are not written to the cache (JAX's default,
-#: 1 s, would leave out most of the tracker's and the evaluation's programs)
-MIN_COMPILE_SECONDS = 0.1
-
 _CONFIG = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
-
-
-def cache_dir() -> Path:
-    """The compilation cache folder: ``$PHJAX_CACHE_DIR``, else ``$XDG_CACHE_HOME/phjax/jax``,
-    else ``~/.cache/phjax/jax``."""
-    if os.environ.get("PHJAX_CACHE_DIR"):
-        return Path(os.environ["PHJAX_CACHE_DIR"]).expanduser()
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path("~/.cache").expanduser())
-    return Path(base) / "phjax" / "jax"
 
 
 def cache_disabled(no_cache: bool = False) -> bool:
@@ -93,9 +82,7 @@ def compilation_cache(enabled: bool = True, command: str = "phjax",
             print(f"phjax: compiling (first run of '{command}'; cached in {path}, later runs "
                   "start faster) ...", file=sys.stderr, flush=True)
 
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
-    cc.reset_cache()  # a cache another folder initialised earlier in this process
+    enable_compilation_cache(path)
     jax.monitoring.register_event_listener(on_event)
     try:
         yield CacheSession(path, marker)

@@ -138,6 +138,39 @@ def check_output(path, what: str = "output") -> Path:
     return p
 
 
+#: working memory per item of the commands' arrays, bytes (generous: inputs, outputs, the
+#: scan's stacked states and every method's copy in an evaluation)
+BYTES_PER_RENDER_SAMPLE = {"smooth": 512, "evaluate": 4096}
+BYTES_PER_CAMERA_FRAME = 16384
+
+
+def _memory_bytes() -> int | None:
+    """Physical memory of this machine, bytes (``None`` where the OS does not say)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, OSError, ValueError):
+        return None
+
+
+def check_fits(counts: dict[str, tuple[float, int]]) -> None:
+    """Fail before any work (``ValueError``: one line, exit status 2) when the arrays a command
+    would make need more than half of this machine's memory, instead of running out of it.
+
+    Arguments:
+        counts: what (e.g. ``"--rate 1e+09 Hz over 30 s"``) -> (number of items, bytes each).
+    """
+    total = _memory_bytes()
+    if total is None:
+        return
+    need = sum(n * b for n, b in counts.values())
+    if need > total / 2:
+        what = max(counts, key=lambda k: counts[k][0] * counts[k][1])
+        n = counts[what][0]
+        raise ValueError(f"{what} makes {n:.3g} samples: about {need / 2**30:,.0f} GiB of "
+                         f"memory, more than half of this machine's {total / 2**30:.0f} GiB; "
+                         "lower the rate or shorten the recording")
+
+
 def replaced_note(path) -> str:
     """``" (replaced the existing file)"`` when ``path`` exists, else ``""``: the commands
     overwrite their outputs and say so on the line that names the written file."""

@@ -7,11 +7,14 @@ import time
 import numpy as np
 
 from ._common import (
+    BYTES_PER_CAMERA_FRAME,
+    BYTES_PER_RENDER_SAMPLE,
     OUTPUT_FORMATS,
     add_format_argument,
     add_output_argument,
     add_rate_argument,
     add_sensor_arguments,
+    check_fits,
     check_output,
     positive_float,
     read_input,
@@ -46,6 +49,11 @@ def _run_evaluation(times, positions, quaternions, args, title: str) -> int:
     config = config_from_args(args)
     if args.plot:
         check_output(args.plot, "plot")
+    span = float(np.nanmax(times) - np.nanmin(times)) if len(times) else 0.0
+    check_fits({f"--rate {args.rate:g} Hz over {span:.3g} s":
+                (span * args.rate, BYTES_PER_RENDER_SAMPLE["evaluate"]),
+                f"--camera-rate {args.camera_rate:g} Hz over {span:.3g} s":
+                (span * args.camera_rate, BYTES_PER_CAMERA_FRAME)})
     t0 = time.perf_counter()
     result = evaluate_recording(times, positions, quaternions, sensor=_sensor(args),
                                 render_rate=args.rate, seed=args.seed, progress=not args.no_progress,
@@ -126,6 +134,9 @@ def cmd_smooth(args) -> int:
     check_output(args.output)
     config = config_from_args(args)
     traj = read_input(args.input, args.format)
+    span = float(traj.times[-1] - traj.times[0])
+    check_fits({f"--rate {args.rate:g} Hz over {span:.3g} s":
+                (span * args.rate, BYTES_PER_RENDER_SAMPLE["smooth"])})
     config, noise = with_noise_from_args(args, config, traj.times, traj.positions,
                                          traj.quaternions)
     if noise:

@@ -11,9 +11,19 @@
 
 from .orientation import QuaternionHermite, quaternion_hermite
 from .ph_quintic import FrameKind, PHQuintic, hermite_quintic, near_optimal_angles
-from .ph_spline import SplineSolution, SplineStatus, ph_spline
+from typing import TYPE_CHECKING
+
+from .._lazy import lazy_exports
 from .sampling import sample, sample_chunks, sample_into
-from .shape import Objective, ShapeSolution, ShapeStatus, grid_search_shape, optimize_shape
+
+if TYPE_CHECKING:  # imported on first use (optimistix), see phjax._lazy
+    from .ph_spline import SplineSolution, SplineStatus, ph_spline
+    from .shape import Objective, ShapeSolution, ShapeStatus, grid_search_shape, optimize_shape
+
+__getattr__, __dir__ = lazy_exports(__name__, {
+    "ph_spline": ("SplineSolution", "SplineStatus", "ph_spline"),
+    "shape": ("Objective", "ShapeSolution", "ShapeStatus", "grid_search_shape", "optimize_shape"),
+})
 
 __all__ = [
     "FrameKind",

@@ -63,15 +63,25 @@ from .tracker import (
     tracker_sample,
     tracker_update,
 )
-from .tuning import (
-    TuningResult,
-    default_parameters,
-    load_config,
-    save_config,
-    tracker_loss,
-    tunable_parameters,
-    tune_tracker,
-)
+from typing import TYPE_CHECKING
+
+from .._lazy import lazy_exports
+
+if TYPE_CHECKING:  # imported on first use (optimistix), see phjax._lazy
+    from .tuning import (
+        TuningResult,
+        default_parameters,
+        load_config,
+        save_config,
+        tracker_loss,
+        tunable_parameters,
+        tune_tracker,
+    )
+
+__getattr__, __dir__ = lazy_exports(__name__, {
+    "tuning": ("TuningResult", "default_parameters", "load_config", "save_config",
+               "tracker_loss", "tunable_parameters", "tune_tracker"),
+})
 
 __all__ = [
     "MeasurementNoise",

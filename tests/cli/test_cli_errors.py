@@ -162,3 +162,36 @@ def test_top_level_help_documents_the_error_path(capsys):
     assert main(["--help"]) == 0
     text = " ".join(capsys.readouterr().out.split())
     assert "exit status 2" in text and "error" in text
+
+
+@pytest.mark.parametrize("argv, names", [
+    (["smooth", "FILE", "-o", "OUT.txt", "--rate", "1e9"], "--rate 1e+09 Hz"),
+    (["evaluate", "FILE", "--plot", "", "--no-progress", "--rate", "1e9"], "--rate 1e+09 Hz"),
+    (["demo", "--plot", "", "--no-progress", "--camera-rate", "1e9"], "--camera-rate 1e+09 Hz"),
+    (["demo", "FILE", "--plot", "", "--no-progress", "--rate", "2e8"], "--rate 2e+08 Hz"),
+])
+def test_work_that_cannot_fit_in_memory_says_so_before_it_starts(tmp_path, capsys, monkeypatch,
+                                                                   argv, names):
+    """Rates whose arrays would need more than half the machine's memory end in one line and
+    status 2 before any array is made (they ended in NumPy's out-of-memory traceback, 74-447
+    GiB); the memory is pinned to 24 GiB so that the bound is the same on every machine."""
+    import phjax.cli._common as common
+
+    monkeypatch.setattr(common, "_memory_bytes", lambda: 24 * 2**30)
+    src = tmp_path / "walk.txt"
+    src.write_text("".join(f"{0.1 * k} {0.01 * k} 0 0 0 0 0 1\n" for k in range(300)))  # 29.9 s
+    argv = [str(src) if a == "FILE" else str(tmp_path / a) if a.startswith("OUT") else a
+            for a in argv]
+    rc, out, err = _run(capsys, argv)
+    _assert_one_line_error(rc, out, err, names, "GiB of memory", "24 GiB")
+    assert not (tmp_path / "OUT.txt").exists()
+
+
+def test_work_that_fits_is_not_refused(monkeypatch):
+    """The bound sits at half the memory: 120 Hz over an hour passes on 1 GiB."""
+    import phjax.cli._common as common
+
+    monkeypatch.setattr(common, "_memory_bytes", lambda: 2**30)
+    common.check_fits({"--rate 120 Hz over 3600 s": (120 * 3600, 512)})
+    with pytest.raises(ValueError, match="more than half of this machine's 1 GiB"):
+        common.check_fits({"--rate 1e5 Hz over 3600 s": (1e5 * 3600, 512)})
