@@ -55,14 +55,15 @@ from .kalman import (
     _canonical_rotvec,
     _clamped_time,
     _extrapolate_derivatives,
-    _float_dtype,
+    _filter_scan,
     _initial_moments,
+    _inject,
     _joseph_update,
-    _measure_first3,
+    _linear_predict,
     _measurement_validity,
-    _rot_matrices,
+    _rot_predict,
+    _rot_update,
     _select,
-    _so3_left_jacobian,
     _so3_left_jacobian_inv,
     _spd_inverse,
     _sym,
@@ -266,11 +267,16 @@ def imm_combine(
     return x0[0], p0[0]
 
 
+def _loglik(nis, log_det, m: int):
+    """Gaussian log-likelihood of an ``m``-dimensional innovation from its NIS and log det S."""
+    return -0.5 * (nis + log_det + m * _LOG_2PI)
+
+
 def _kf_update(x, p, h, r, y):
     """The Kalman update and the model's Gaussian log-likelihood of ``y``; returns
     ``(x, P, S, nis, loglik)``."""
     x_new, p_new, s, nis, log_det = _joseph_update(x, p, h, r, y)
-    return x_new, p_new, s, nis, -0.5 * (nis + log_det + y.shape[0] * _LOG_2PI)
+    return x_new, p_new, s, nis, _loglik(nis, log_det, y.shape[0])
 
 
 def _mixture_innovation(log_cbar, ys, ss):
@@ -318,8 +324,7 @@ def imm_linear_step(
     valid = jnp.all(jnp.isfinite(z))
     log_cbar, omega = imm_mixing(log_mu, log_transition)
     x0, p0 = _mix(omega, xs, ps)
-    xp = jnp.einsum("kab,kb->ka", fs, x0)
-    pp = _sym(jnp.einsum("kab,kbc,kdc->kad", fs, p0, fs) + qs)
+    xp, pp = jax.vmap(_linear_predict)(x0, p0, fs, qs)
     y = jnp.where(valid, z, 0)[None, :] - xp @ h.T
     xu, pu, s, _, ll = jax.vmap(_kf_update, (0, 0, None, None, 0))(xp, pp, h, r, y)
     log_mu_new, ll = _mode_update(log_cbar, ll, valid)
@@ -397,12 +402,9 @@ def _tangent(q, ref, cov=None):
 
 
 def _recentre(delta, ref, cov):
-    """Orientations ``exp(delta) ref`` and covariances transported back to their error states."""
-    z3 = jnp.zeros((3, 3), ref.dtype)
-    eye = jnp.eye(3, dtype=ref.dtype)
-    g = jax.vmap(lambda d: _block(_so3_left_jacobian(d), z3, z3, eye))(delta)
-    q = quat_normalize(quat_mul(quat_from_rotvec(delta), ref[None, :]))
-    return q, _sym(jnp.einsum("kab,kbc,kdc->kad", g, cov, g))
+    """Orientations ``exp(delta) ref`` and covariances transported back to their error states
+    (the error-state injection of :mod:`phjax.tracking.kalman`, per model)."""
+    return jax.vmap(_inject, (0, None, 0))(delta, ref, cov)
 
 
 def _reference(log_mu, q):
@@ -420,31 +422,17 @@ def _rot_step(config, state, dt, q_meas, rot_valid, r_rot):
     s0, p0 = _mix(omega, jnp.concatenate([delta, state.w], -1), cov)
     q0, p0 = _recentre(s0[:, :3], ref, p0)
     w0 = s0[:, 3:]
-    # per-model prediction (kalman.py's error-state maths with the model's density)
-    fr, qr = jax.vmap(_rot_matrices, (0, 0, None))(_rot_qs(config, dtype), w0, dt)
-    qp = quat_normalize(quat_mul(quat_from_rotvec(w0 * dt), q0))
-    pp = _sym(jnp.einsum("kab,kbc,kdc->kad", fr, p0, fr) + qr)
-    # per-model update
-    q_safe = quat_normalize(jnp.where(rot_valid, q_meas, qp[0]))
-    y = jnp.where(rot_valid, _canonical_rotvec(quat_mul(q_safe[None, :], quat_conj(qp))), 0)
-    err, pu, s, _, ll = jax.vmap(_kf_update, (None, 0, None, None, 0))(
-        jnp.zeros(6, dtype), pp, _measure_first3(6, dtype), r_rot, y)
-    qu, pu = _recentre_each(err[:, :3], qp, pu)
+    # per model: kalman.py's error-state prediction (the model's density) and update
+    qp, pp = jax.vmap(_rot_predict, (0, 0, 0, 0, None))(q0, w0, p0, _rot_qs(config, dtype), dt)
+    qu, wu, pu, y, s, nis_k, log_det = jax.vmap(_rot_update, (0, 0, 0, None, None, None))(
+        qp, w0, pp, q_meas, rot_valid, r_rot)
+    ll = _loglik(nis_k, log_det, y.shape[-1])
     log_mu, ll = _mode_update(log_cbar, ll, rot_valid)
     ym, sm, nis = _mixture_innovation(log_cbar, y, s)
     q_new = jnp.where(rot_valid, qu, qp)
-    w_new = jnp.where(rot_valid, w0 + err[:, 3:], w0)
+    w_new = jnp.where(rot_valid, wu, w0)
     pr_new = jnp.where(rot_valid, pu, pp)
     return log_mu, q_new, w_new, pr_new, (ll, ym, sm, nis)
-
-
-def _recentre_each(dtheta, q, cov):
-    """Inject per-model error means ``dtheta`` (K, 3) into ``q`` (K, 4), reset covariances."""
-    z3 = jnp.zeros((3, 3), q.dtype)
-    eye = jnp.eye(3, dtype=q.dtype)
-    g = jax.vmap(lambda d: _block(_so3_left_jacobian(d), z3, z3, eye))(dtheta)
-    qn = quat_normalize(quat_mul(quat_from_rotvec(dtheta), q))
-    return qn, _sym(jnp.einsum("kab,kbc,kdc->kad", g, cov, g))
 
 
 def imm_step(
@@ -532,19 +520,8 @@ def imm_filter(
     Returns:
         ``(states, infos)`` stacked over the measurements (posterior after each).
     """
-    times = jnp.asarray(times)
-    dtype = _float_dtype(positions, quaternions)
-    positions = jnp.asarray(positions, dtype)
-    quaternions = jnp.asarray(quaternions, dtype)
-    if initial_state is None:
-        initial_state = imm_uninitialized(config, times[0], dtype)
-
-    def body(state, inputs):
-        state, info = imm_step(config, state, *inputs)
-        return state, (state, info)
-
-    _, out = jax.lax.scan(body, initial_state, (times, positions, quaternions))
-    return out
+    return _filter_scan("imm_filter", imm_step, imm_uninitialized, config, times, positions,
+                        quaternions, initial_state)
 
 
 class IMMEstimate(eqx.Module):

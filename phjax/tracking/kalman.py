@@ -490,12 +490,8 @@ def kalman_predict(
         The predicted state (uninitialised states only have their time advanced).
     """
     t_new, dt = _clamped_time(state, t)
-    f, qmat = _pos_model(config, dt)
-    x = f @ state.x
-    p = _sym(f @ state.P @ f.T + qmat)
-    fr, qr = _rot_model(config, state.w, dt)
-    q = quat_normalize(quat_mul(quat_from_rotvec(state.w * dt), state.q))
-    pr = _sym(fr @ state.Pr @ fr.T + qr)
+    x, p = _linear_predict(state.x, state.P, *_pos_model(config, dt))
+    q, pr = _rot_predict(state.q, state.w, state.Pr, config.rot_process_noise, dt)
     pred = KalmanState(t_new, x, p, q, state.w, pr, state.initialized, state.last_update)
     moved = eqx.tree_at(lambda s: s.t, state, t_new)
     return _select(state.initialized, pred, moved)
@@ -516,6 +512,47 @@ def _joseph_update(x, p, h, r, y):
 def _measure_first3(n: int, dtype):
     """``H = [I3 0]``: the measurement matrix of a state whose first three entries are measured."""
     return jnp.eye(3, n, dtype=dtype)
+
+
+# One model's Kalman maths, shared by the filter below and, vmapped over its models, by the IMM
+# (phjax.tracking.imm): linear prediction, and the error-state orientation prediction / update.
+
+
+def _linear_predict(x, p, f, q):
+    """``x <- F x``, ``P <- F P F^T + Q`` (symmetrised)."""
+    return f @ x, _sym(f @ p @ f.T + q)
+
+
+def _rot_predict(q, w, pr, density, dt):
+    """Error-state orientation prediction over ``dt`` with angular-acceleration density
+    ``density``: ``q <- exp(w dt) q`` (normalised), ``Pr <- F Pr F^T + Q`` (module docs)."""
+    f, qn = _rot_matrices(density, w, dt)
+    return quat_normalize(quat_mul(quat_from_rotvec(w * dt), q)), _sym(f @ pr @ f.T + qn)
+
+
+def _inject(dtheta, q, pr):
+    """Inject the error mean ``dtheta`` into ``q`` (``q <- exp(dtheta) q``, normalised) and reset
+    the covariance with ``G = diag(J_l(dtheta), I)``: ``Pr <- G Pr G^T``."""
+    dtype = q.dtype
+    g = _block(_so3_left_jacobian(dtheta), jnp.zeros((3, 3), dtype), jnp.zeros((3, 3), dtype),
+               jnp.eye(3, dtype=dtype))
+    return quat_normalize(quat_mul(quat_from_rotvec(dtheta), q)), _sym(g @ pr @ g.T)
+
+
+def _rot_update(q, w, pr, q_meas, valid, r):
+    """Error-state orientation update with a measured orientation (module docs).
+
+    Returns ``(q, w, Pr, y, S, nis, log det S)``: the updated nominal, angular velocity and
+    covariance (apply them only where the measurement is used), the innovation (zero when
+    ``valid`` is false: a safe substitute keeps values and gradients finite) and its covariance,
+    NIS and log-determinant.
+    """
+    q_safe = quat_normalize(jnp.where(valid, q_meas, q))
+    y = jnp.where(valid, _canonical_rotvec(quat_mul(q_safe, quat_conj(q))), 0)
+    err, pr_new, s, nis, log_det = _joseph_update(jnp.zeros(6, q.dtype), pr,
+                                                  _measure_first3(6, q.dtype), r, y)
+    q_new, pr_new = _inject(err[:3], q, pr_new)
+    return q_new, w + err[3:], pr_new, y, s, nis, log_det
 
 
 def kalman_update(
@@ -551,20 +588,8 @@ def kalman_update(
 
     # orientation part (error state, H = [I 0])
     r_rot = jnp.asarray(config.rot_meas_noise, dtype) ** 2 * jnp.eye(3, dtype=dtype)
-    q_safe = quat_normalize(jnp.where(rot_valid, q_meas, state.q))
-    y_rot = jnp.where(rot_valid, _canonical_rotvec(quat_mul(q_safe, quat_conj(state.q))), 0)
-    err0 = jnp.zeros(6, dtype)
-    err, pr_upd, s_rot, nis_rot, _ = _joseph_update(err0, state.Pr, _measure_first3(6, dtype),
-                                                    r_rot, y_rot)
-    dtheta, dw = err[:3], err[3:]
-    q_upd = quat_normalize(quat_mul(quat_from_rotvec(dtheta), state.q))
-    g = _block(
-        _so3_left_jacobian(dtheta),
-        jnp.zeros((3, 3), dtype),
-        jnp.zeros((3, 3), dtype),
-        jnp.eye(3, dtype=dtype),
-    )
-    pr_upd = _sym(g @ pr_upd @ g.T)
+    q_upd, w_upd, pr_upd, y_rot, s_rot, nis_rot, _ = _rot_update(
+        state.q, state.w, state.Pr, q_meas, rot_valid, r_rot)
     rot_ok = rot_valid if gate is None else rot_valid & (nis_rot <= gate)
 
     updated = KalmanState(
@@ -572,7 +597,7 @@ def kalman_update(
         x=jnp.where(pos_ok, x_upd, state.x),
         P=jnp.where(pos_ok, p_upd, state.P),
         q=jnp.where(rot_ok, q_upd, state.q),
-        w=jnp.where(rot_ok, state.w + dw, state.w),
+        w=jnp.where(rot_ok, w_upd, state.w),
         Pr=jnp.where(rot_ok, pr_upd, state.Pr),
         initialized=state.initialized,
         last_update=jnp.where(pos_ok | rot_ok, state.t, state.last_update),
@@ -643,6 +668,15 @@ def kalman_filter(
     Returns:
         ``(states, infos)`` stacked over the ``n`` measurements (posterior after each one).
     """
+    return _filter_scan("kalman_filter", kalman_step, kalman_uninitialized, config, times,
+                        positions, quaternions, initial_state)
+
+
+def _filter_scan(name, step, uninitialized, config, times, positions, quaternions,
+                 initial_state):
+    """``lax.scan`` of a filter's ``step`` over a measurement sequence (shared by
+    :func:`kalman_filter` and :func:`phjax.tracking.imm.imm_filter`): shapes checked, the pose
+    dtype taken from the measurements, an uninitialised start at ``times[0]`` by default."""
     times = jnp.asarray(times)
     dtype = _float_dtype(positions, quaternions)
     positions = jnp.asarray(positions, dtype)
@@ -650,14 +684,14 @@ def kalman_filter(
     n = times.shape[0] if times.ndim == 1 else -1
     if times.ndim != 1 or positions.shape != (n, 3) or quaternions.shape != (n, 4) or n < 1:
         raise ValueError(
-            "kalman_filter expects times (n,), positions (n, 3), quaternions (n, 4) with n >= 1; "
+            f"{name} expects times (n,), positions (n, 3), quaternions (n, 4) with n >= 1; "
             f"got {times.shape}, {positions.shape}, {quaternions.shape}"
         )
     if initial_state is None:
-        initial_state = kalman_uninitialized(config, times[0], dtype)
+        initial_state = uninitialized(config, times[0], dtype)
 
     def body(state, inputs):
-        state, info = kalman_step(config, state, *inputs)
+        state, info = step(config, state, *inputs)
         return state, (state, info)
 
     _, (states, infos) = lax.scan(body, initial_state, (times, positions, quaternions))
@@ -701,15 +735,13 @@ def rts_smooth(config: KalmanConfig, filtered_states: KalmanState) -> KalmanStat
         dt = jnp.maximum(nxt.t - cur.t, 0).astype(dtype)
         # position: exact linear RTS
         f, qmat = _pos_model(config, dt)
-        x_pred = f @ cur.x
-        p_pred = _sym(f @ cur.P @ f.T + qmat)
+        x_pred, p_pred = _linear_predict(cur.x, cur.P, f, qmat)
         gain = jsl.cho_solve((jnp.linalg.cholesky(p_pred), True), f @ cur.P).T
         x_s = cur.x + gain @ (nxt.x - x_pred)
         p_s = _sym(cur.P + gain @ (nxt.P - p_pred) @ gain.T)
         # orientation: multiplicative RTS in the error coordinates of the filtered state
-        fr, qr = _rot_model(config, cur.w, dt)
-        q_pred = quat_normalize(quat_mul(quat_from_rotvec(cur.w * dt), cur.q))
-        pr_pred = _sym(fr @ cur.Pr @ fr.T + qr)
+        fr, _ = _rot_model(config, cur.w, dt)
+        q_pred, pr_pred = _rot_predict(cur.q, cur.w, cur.Pr, config.rot_process_noise, dt)
         e_theta = _canonical_rotvec(quat_mul(nxt.q, quat_conj(q_pred)))
         e = jnp.concatenate([e_theta, nxt.w - cur.w])
         jinv = _so3_left_jacobian_inv(e_theta)
@@ -718,9 +750,7 @@ def rts_smooth(config: KalmanConfig, filtered_states: KalmanState) -> KalmanStat
         gain_r = jsl.cho_solve((jnp.linalg.cholesky(pr_pred), True), fr @ cur.Pr).T
         delta = gain_r @ e
         pr_s = cur.Pr + gain_r @ (p_next - pr_pred) @ gain_r.T
-        g = _block(_so3_left_jacobian(delta[:3]), zero3, zero3, eye3)
-        pr_s = _sym(g @ pr_s @ g.T)
-        q_s = quat_normalize(quat_mul(quat_from_rotvec(delta[:3]), cur.q))
+        q_s, pr_s = _inject(delta[:3], cur.q, pr_s)
         smoothed = KalmanState(
             cur.t, x_s, p_s, q_s, cur.w + delta[3:], pr_s, cur.initialized, cur.last_update
         )
