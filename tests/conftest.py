@@ -82,12 +82,17 @@ TEST_CACHE = "PHJAX_TEST_CACHE_DIR"
 
 def pytest_configure(config):
     """One persistent compilation cache for the whole run: the controller (or a run without
-    xdist) makes a fresh folder, its xdist workers inherit it through the environment, so a
-    program compiled by one worker is loaded, not compiled, by the other. Fresh per run: no
+    xdist) makes a fresh folder, its xdist workers and every Python process a test starts
+    inherit it through the environment, so a program compiled by one process is loaded, not
+    compiled, by the others. Fresh per run: no
     result of an earlier run (or of other code) is reused. Removed at the end of the run."""
     if not os.environ.get("PYTEST_XDIST_WORKER"):
         os.environ[TEST_CACHE] = tempfile.mkdtemp(prefix="phjax-test-jax-cache-")
         config._phjax_cache_owner = True
+        # the Python processes tests start (README, notebooks, experiments, the CLI) read JAX's
+        # own variables at start-up and share the same cache
+        os.environ["JAX_COMPILATION_CACHE_DIR"] = os.environ[TEST_CACHE]
+        os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0.1"
     import phjax
 
     phjax.enable_compilation_cache(os.environ[TEST_CACHE])
@@ -96,6 +101,8 @@ def pytest_configure(config):
 def pytest_unconfigure(config):
     if getattr(config, "_phjax_cache_owner", False):
         shutil.rmtree(os.environ.pop(TEST_CACHE, ""), ignore_errors=True)
+        for name in ("JAX_COMPILATION_CACHE_DIR", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"):
+            os.environ.pop(name, None)
 
 
 #: the marker of tests that must have the machine to themselves (see pytest_collection_modifyitems)

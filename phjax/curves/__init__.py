@@ -14,14 +14,13 @@ from .ph_quintic import FrameKind, PHQuintic, hermite_quintic, near_optimal_angl
 from typing import TYPE_CHECKING
 
 from .._lazy import lazy_exports
+from .ph_spline import SplineSolution, SplineStatus, ph_spline  # optimistix on first use
 from .sampling import sample, sample_chunks, sample_into
 
 if TYPE_CHECKING:  # imported on first use (optimistix), see phjax._lazy
-    from .ph_spline import SplineSolution, SplineStatus, ph_spline
     from .shape import Objective, ShapeSolution, ShapeStatus, grid_search_shape, optimize_shape
 
 __getattr__, __dir__ = lazy_exports(__name__, {
-    "ph_spline": ("SplineSolution", "SplineStatus", "ph_spline"),
     "shape": ("Objective", "ShapeSolution", "ShapeStatus", "grid_search_shape", "optimize_shape"),
 })
 

@@ -45,7 +45,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
@@ -181,6 +180,8 @@ def _multipliers(Z, cons):
 @functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
 def _core(dp, ds, de, settings):
     """Unknowns ``Z`` (scaled problem) and the solver record; see the module docstring."""
+    import optimistix as optx  # on first use: import phjax stays light
+
     clamp_start, clamp_end, max_steps, rtol, atol = settings
     dtype = dp.dtype
     n = dp.shape[0]

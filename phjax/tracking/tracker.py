@@ -285,13 +285,20 @@ def tracker_init(config: TrackerConfig | None = None, t: float = 0.0, dtype=None
         A :class:`TrackerState` whose samples are NaN until the first valid update.
     """
     config = TrackerConfig() if config is None else config
-    dtype = _float_dtype(dtype)
-    kf = _filter_uninitialized(config, jnp.asarray(t, dtype), dtype)
+    return _init(config, jnp.asarray(t, _float_dtype(dtype)))
+
+
+@jit
+def _init(config: TrackerConfig, t) -> TrackerState:
+    """:func:`tracker_init` as one compiled program (run eagerly, its few hundred operations
+    were compiled one by one: 85 compilations before a stream's first update)."""
+    dtype = t.dtype
+    kf = _filter_uninitialized(config, t, dtype)
     z3 = jnp.zeros((2, 3), dtype)
     q = jnp.broadcast_to(jnp.asarray([1.0, 0, 0, 0], dtype), (2, 4))
     dur = jnp.full((2,), 0.5, dtype)
     curve, rot = _segment(z3, z3, q, z3, z3, z3, q, z3, dur)
-    return _make_state(config, kf, jnp.asarray(t, dtype), dur, curve, rot, jnp.asarray(False),
+    return _make_state(config, kf, t, dur, curve, rot, jnp.asarray(False),
                        (z3[0], z3[0], q[0], z3[0]))
 
 
