@@ -12,12 +12,13 @@ def cmd_live(args) -> int:
 
     jax.config.update("jax_enable_x64", True)
     jax.config.update("jax_cpu_enable_async_dispatch", False)
-    from ..live import LiveTracker, OutputError, SourceError
+    from ..live import LiveTracker, OutputError, SourceError, open_source
 
     try:
-        lt = LiveTracker(args.source, args.output or [], rate=args.rate, duration=args.duration,
-                         log=args.log, center=args.center, model_dir=args.model_dir,
-                         ipd=args.ipd, fov=args.fov, realtime=args.realtime)
+        source = open_source(args.source, model_dir=args.model_dir, ipd=args.ipd, fov=args.fov,
+                             monocular=args.monocular, head_size=args.head_size)
+        lt = LiveTracker(source, args.output or [], rate=args.rate, duration=args.duration,
+                         log=args.log, center=args.center, realtime=args.realtime)
         lt.start()
     except (SourceError, OutputError, ValueError, FileNotFoundError) as e:
         print(f"phjax live: error: {e}", file=sys.stderr)
@@ -79,9 +80,10 @@ def add_commands(sub) -> None:
         "a render loop samples it at --rate on absolute deadlines and sends each pose to every "
         "--output (and to --log). SOURCE: synthetic[:N[:SEED]] (the rendered test head), an "
         "RGB-D folder (Biwi, TUM RGB-D, color/+depth/), webcam[:INDEX] or a video file "
-        "(monocular: YuNet landmarks + PnP), realsense[:SERIAL] (pyrealsense2), poses:FILE "
-        "(replay a pose file). Stops at the end of the source, after --duration, on Ctrl-C or "
-        "SIGTERM; SIGUSR1 re-centres. Output axes: see docs/live.md.")
+        "(monocular: opentrack's head-pose network, or --monocular landmarks), "
+        "realsense[:SERIAL] (pyrealsense2), poses:FILE (replay a pose file). Stops at the end "
+        "of the source, after --duration, on Ctrl-C or SIGTERM; SIGUSR1 re-centres. Output "
+        "axes: see docs/live.md.")
     p.add_argument("source", help="synthetic[:N[:SEED]] | RGB-D folder | webcam[:INDEX] | "
                    "video file | realsense[:SERIAL] | poses:FILE")
     p.add_argument("--output", "-o", action="append", metavar="URL",
@@ -94,13 +96,21 @@ def add_commands(sub) -> None:
     p.add_argument("--log", default=None, help="write every sent pose to this TUM file")
     p.add_argument("--center", action="store_true",
                    help="the first pose becomes the origin (SIGUSR1 re-centres at any time)")
+    p.add_argument("--monocular", choices=("net", "landmarks"), default="net",
+                   help="monocular sources: 'net' (default; opentrack's head-pose network, "
+                   "research / non-commercial weights) or 'landmarks' (YuNet's five landmarks "
+                   "+ PnP)")
+    p.add_argument("--head-size", type=float, default=None,
+                   help="monocular 'net': assumed vertical head size, m (default 0.20)")
     p.add_argument("--ipd", type=float, default=None,
-                   help="monocular sources: assumed inter-pupillary distance, m (default 0.063)")
+                   help="monocular 'landmarks': assumed inter-pupillary distance, m (default "
+                   "0.063)")
     p.add_argument("--fov", type=float, default=60.0,
                    help="monocular sources: horizontal field of view of the camera, degrees "
                    "(default 60)")
     p.add_argument("--model-dir", default=None,
-                   help="YuNet model cache (default $PHJAX_MODEL_DIR or ~/.cache/phjax/models)")
+                   help="model cache: YuNet, the head-pose network (default $PHJAX_MODEL_DIR "
+                   "or ~/.cache/phjax/models)")
     p.add_argument("--status-interval", type=float, default=1.0,
                    help="seconds between status lines (default 1)")
     p.add_argument("--realtime", action="store_true",

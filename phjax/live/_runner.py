@@ -31,6 +31,12 @@ horizon was tried: 1.5 intervals made the prediction overshoot more and the step
 smaller), so the stream settles on each prediction just before the next measurement and
 does not stop between measurements (changing these values does not recompile).
 
+Per-frame confidence. A measurement's ``confidence`` (a monocular pose's predicted
+uncertainty, :class:`phjax.vision.monocular.MonocularResult`) divides the filter's measurement
+noise by ``sqrt(confidence)`` for that measurement alone (at least :data:`MIN_CONFIDENCE`): a
+doubtful frame counts less instead of jerking the stream (changing the noise does not
+recompile).
+
 Never NaN: before the first good measurement nothing is sent; afterwards a non-finite sample
 (none is expected) is replaced by the last good one. A lost face makes the stream coast, then
 come to rest (``coast_time``, ``stop_time`` of :class:`phjax.TrackerConfig`).
@@ -71,7 +77,12 @@ from ._clock import RealClock, VirtualClock
 from ._outputs import Output, TumLog, open_output
 from ._sources import Measurement, Source, open_source
 
-__all__ = ["LiveStream", "LiveTracker", "Sample", "live_tracker_config"]
+__all__ = ["MIN_CONFIDENCE", "LiveStream", "LiveTracker", "Sample", "live_tracker_config"]
+
+#: the smallest confidence a measurement is given (its noise is at most 10 times the config's)
+MIN_CONFIDENCE = 0.01
+#: the config fields scaled by a measurement's noise scale (also inside an IMM config)
+_MEAS_NOISE_FIELDS = ("pos_meas_noise", "rot_meas_noise")
 
 
 # ------------------------------------------------------------------------------- stream
@@ -108,17 +119,28 @@ class LiveStream(TrackerStream):
         """Use another config of the same structure (no recompilation)."""
         super().set_config(config)
         self._late = _on_leaves(_late_update, self._config_def, self._state_def)
+        paths = jax.tree_util.tree_flatten_with_path(config)[0]
+        self._noise_leaves = [i for i, (path, _) in enumerate(paths)
+                              if getattr(path[-1], "name", None) in _MEAS_NOISE_FIELDS]
 
-    def update_late(self, t_measured: float, t_now: float, position, quaternion) -> None:
+    def update_late(self, t_measured: float, t_now: float, position, quaternion,
+                    noise_scale: float = 1.0) -> None:
         """Feed a measurement taken at ``t_measured`` that arrives at ``t_now`` (module docs).
 
         Arguments:
             t_measured: capture time, s.
             t_now: current time (the new render segment starts here), s.
             position: ``(3,)`` m, NaN if missing; quaternion: ``(4,)`` ``wxyz``, NaN if missing.
+            noise_scale: factor on the measurement noise stds (``pos_meas_noise``,
+                ``rot_meas_noise``) for this measurement only.
         """
         dt = self._dtype
-        self._leaves = self._late(self._config_leaves, self._leaves, dt(t_measured), dt(t_now),
+        config = self._config_leaves
+        if noise_scale != 1.0:
+            config = list(config)
+            for i in self._noise_leaves:
+                config[i] = config[i] * dt(noise_scale)
+        self._leaves = self._late(config, self._leaves, dt(t_measured), dt(t_now),
                                   np.asarray(position, dt), np.asarray(quaternion, dt))
 
 
@@ -424,9 +446,11 @@ class LiveTracker:
         ok = m.ok
         if ok and self.adaptive:
             self._adapt(m.t)
+        scale = 1.0 / math.sqrt(max(min(float(m.confidence), 1.0), MIN_CONFIDENCE)) if ok \
+            else 1.0
         self.stream.update_late(m.t - self.t0, max(now, m.t) - self.t0,
                                 np.asarray(m.position, np.float64),
-                                np.asarray(m.quaternion, np.float64))
+                                np.asarray(m.quaternion, np.float64), scale)
         if ok:
             self._last_capture = m.t
 

@@ -16,7 +16,9 @@ an RGB-D recording
     replayed at its own timestamps through the same front-end.
 ``webcam[:INDEX]`` or a video file
     OpenCV ``VideoCapture``, colour only, monocular head pose
-    (:class:`phjax.vision.monocular.MonocularHeadPose`); a file is replayed at its frame rate.
+    (:class:`phjax.vision.monocular.MonocularHeadPose`: opentrack's head-pose network by
+    default, YuNet landmarks + PnP with ``monocular="landmarks"``), each pose with a confidence
+    that scales the filter's measurement noise; a file is replayed at its frame rate.
 ``realsense[:SERIAL]``
     an Intel RealSense camera through ``pyrealsense2`` (the ``live`` extra): colour + depth
     aligned to colour, RGB-D front-end.
@@ -64,12 +66,16 @@ class Measurement:
         position: ``(3,)`` camera-frame position, m (NaN if missing).
         quaternion: ``(4,)`` ``wxyz`` (NaN if missing).
         status: the front-end's status name (``"OK"``, ``"NO_FACE"``, ...).
+        confidence: weight of the pose in ``(0, 1]`` (the monocular network's uncertainty,
+            :class:`phjax.vision.monocular.MonocularResult`); the runner divides the filter's
+            measurement noise by its square root for this measurement.
     """
 
     t: float
     position: np.ndarray
     quaternion: np.ndarray
     status: str = "OK"
+    confidence: float = 1.0
 
     @property
     def ok(self) -> bool:
@@ -222,11 +228,14 @@ class VideoSource(Source):
 
     Arguments:
         target: camera index (int) or video file path.
-        ipd: assumed inter-pupillary distance, m.
+        ipd: assumed inter-pupillary distance, m (landmark method).
         fov: horizontal field of view of the camera, degrees (intrinsics of an uncalibrated
             camera; ignored when ``intrinsics`` is given).
         intrinsics: a :class:`phjax.vision.CameraIntrinsics` of the frames.
-        model_dir: YuNet model cache.
+        model_dir: model cache (YuNet, the head-pose network).
+        monocular: ``"net"`` (default: opentrack's head-pose network) or ``"landmarks"``
+            (YuNet's five landmarks + PnP); see :mod:`phjax.vision.monocular`.
+        head_size: assumed vertical head size, m (net method; default 0.20).
 
     A file is replayed at its frame rate (late frames skipped); a camera delivers frames at its
     own rate and each frame's capture time is its arrival time.
@@ -235,7 +244,13 @@ class VideoSource(Source):
     depth_free = True
 
     def __init__(self, target, *, ipd: float | None = None, fov: float = 60.0,
-                 intrinsics=None, model_dir=None):
+                 intrinsics=None, model_dir=None, monocular: str = "net",
+                 head_size: float | None = None):
+        from ..vision.monocular import METHODS
+
+        if monocular not in METHODS:
+            raise SourceError(f"monocular method must be one of {METHODS}, got {monocular!r}")
+        self.monocular, self.head_size = monocular, head_size
         self.target = target
         self.is_file = not isinstance(target, int)
         self.name = f"video file {target}" if self.is_file else f"webcam {target}"
@@ -249,7 +264,12 @@ class VideoSource(Source):
         except ImportError:
             raise SourceError("webcam / video sources need OpenCV (pip install "
                               "'phjax[vision]')") from None
-        from ..vision.monocular import DEFAULT_IPD, MonocularHeadPose, intrinsics_from_fov
+        from ..vision.monocular import (
+            DEFAULT_HEAD_SIZE,
+            DEFAULT_IPD,
+            MonocularHeadPose,
+            intrinsics_from_fov,
+        )
 
         if self.is_file and not Path(self.target).is_file():
             raise SourceError(f"video file not found: {self.target}")
@@ -269,8 +289,13 @@ class VideoSource(Source):
         intr = self.intrinsics if self.intrinsics is not None else intrinsics_from_fov(
             w, h, self.fov)
         ipd = DEFAULT_IPD if self.ipd is None else self.ipd
-        self.estimator = _with_models(lambda: MonocularHeadPose(intr, ipd,
-                                                                model_dir=self.model_dir))
+        head = DEFAULT_HEAD_SIZE if self.head_size is None else self.head_size
+        try:
+            self.estimator = _with_models(lambda: MonocularHeadPose(
+                intr, ipd, method=self.monocular, head_size=head, model_dir=self.model_dir))
+        except (ImportError, SourceError) as e:  # a missing model or onnxruntime
+            self.close()
+            raise SourceError(str(e)) from None
         self.estimator.process(frame, 0.0)  # warm-up
         self.estimator.reset()
 
@@ -282,7 +307,7 @@ class VideoSource(Source):
         t = clock.now()
         while not stop.is_set():
             r = self.estimator.process(frame, t - t0)
-            emit(Measurement(t, r.position, r.quaternion, r.status.name))
+            emit(Measurement(t, r.position, r.quaternion, r.status.name, r.confidence))
             ok, frame = self.cap.read()
             t = clock.now()
             if not ok:
@@ -307,7 +332,7 @@ class VideoSource(Source):
                     return
             t = t0 + index * period
             r = self.estimator.process(frame, t - t0)
-            emit(Measurement(t, r.position, r.quaternion, r.status.name))
+            emit(Measurement(t, r.position, r.quaternion, r.status.name, r.confidence))
             ok, frame = self.cap.read()
             index += 1
             if not ok:
@@ -443,9 +468,12 @@ class RealSenseSource(Source):
 
 
 # ------------------------------------------------------------------------------- parsing
-def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: float = 60.0
-                ) -> Source:
+def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: float = 60.0,
+                monocular: str = "net", head_size: float | None = None) -> Source:
     """A :class:`Source` from the ``SOURCE`` argument of ``phjax live`` (see the module docs).
+
+    ``ipd``, ``fov``, ``monocular`` and ``head_size`` apply to webcam / video sources
+    (:class:`VideoSource`).
 
     Raises:
         SourceError: unknown source, missing file, bad number.
@@ -465,7 +493,8 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
             index = int(arg) if arg else 0
         except ValueError:
             raise SourceError(f"bad webcam index {arg!r}; use webcam[:INDEX]") from None
-        return VideoSource(index, ipd=ipd, fov=fov, model_dir=model_dir)
+        return VideoSource(index, ipd=ipd, fov=fov, model_dir=model_dir, monocular=monocular,
+                           head_size=head_size)
     if kind == "realsense":
         return RealSenseSource(arg or None, model_dir=model_dir)
     if kind == "poses":
@@ -485,6 +514,7 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
             raise SourceError(str(e)) from None
         return RGBDReplaySource(seq, model_dir=model_dir, name=f"RGB-D recording {path}")
     if path.is_file():
-        return VideoSource(os.fspath(path), ipd=ipd, fov=fov, model_dir=model_dir)
+        return VideoSource(os.fspath(path), ipd=ipd, fov=fov, model_dir=model_dir,
+                           monocular=monocular, head_size=head_size)
     raise SourceError(f"unknown source {spec!r}: use synthetic[:N[:SEED]], an RGB-D folder, "
                       "webcam[:INDEX], a video file, realsense[:SERIAL] or poses:FILE")

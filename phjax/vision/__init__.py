@@ -12,9 +12,12 @@ The pipeline, in the order a frame goes through it:
 * :mod:`~phjax.vision.head_pose`: ``HeadPoseEstimator`` (the whole front-end) and
   ``rgbd_relative_pose``.
 * :mod:`~phjax.vision.synthetic_rgbd`: a rendered synthetic head with exact ground truth.
-* :mod:`~phjax.vision.monocular`: head pose from colour alone (YuNet landmarks + PnP).
+* :mod:`~phjax.vision.monocular`: head pose from colour alone (``MonocularHeadPose``:
+  opentrack's head-pose network by default, YuNet landmarks + PnP as a fallback).
 
-OpenCV, kornia and torch are optional (the ``vision`` extra); they are imported when used.
+OpenCV, onnxruntime, kornia and torch are optional (the ``vision`` extra); they are imported
+when used. The head-pose network's weights are for research / non-commercial use only (see
+:mod:`~phjax.vision.monocular`).
 """
 
 from .alignment import AlignmentResult, AlignmentStatus, align, ransac_align, transform_points
@@ -36,7 +39,7 @@ from .icp import (
     icp_point_to_plane,
     icp_projective,
 )
-from .monocular import MonocularHeadPose, face_model, intrinsics_from_fov
+from .monocular import MonocularHeadPose, MonocularResult, face_model, intrinsics_from_fov
 from .rgbd_io import CameraIntrinsics, RGBDFrame, RGBDSequence, open_rgbd
 from .synthetic_rgbd import (
     HeadModel,
@@ -62,6 +65,7 @@ __all__ = [
     "IcpResult",
     "IcpStatus",
     "MonocularHeadPose",
+    "MonocularResult",
     "PinholeIntrinsics",
     "RGBDFrame",
     "RGBDSequence",

@@ -21,7 +21,11 @@ verified by SHA-256 before use:
 * ``yunet_final.pth`` (kornia backend), from ``kornia/data``. kornia itself looks for it in the
   torch hub cache (``$TORCH_HOME/hub/checkpoints/yunet_final.pth``); we place a verified copy
   there when it is missing (so kornia never downloads) and load our cached state dict into the
-  network explicitly.
+  network explicitly;
+* ``head-pose-0.4-small-int8.onnx`` and ``head-localizer.onnx`` (the monocular head pose of
+  :mod:`phjax.vision.monocular`), from ``opentrack/opentrack`` (``tracker-neuralnet/models``).
+  The code is ISC-licensed but the weights were trained partly on data licensed for
+  non-commercial or research use only: **use them for research / non-commercial purposes only**.
 
 :func:`download_model` fetches a file with ``urllib`` (only when asked: ``download=True`` or
 ``phjax.vision.face_detection.download_model(...)``); :func:`seed_model_cache` copies the files from a
@@ -50,6 +54,9 @@ __all__ = [
     "YUNET_ONNX",
     "YUNET_KORNIA",
     "MODELS",
+    "HEAD_POSE_ONNX",
+    "HEAD_LOCALIZER_ONNX",
+    "KNOWN_MODELS",
     "ModelNotFoundError",
     "model_dir",
     "sha256_file",
@@ -146,6 +153,33 @@ YUNET_KORNIA = ModelFile(
 )
 MODELS = {"opencv": YUNET_ONNX, "kornia": YUNET_KORNIA}
 
+_OPENTRACK_RAW = "https://github.com/opentrack/opentrack/raw/{}/tracker-neuralnet/models/{}"
+_OPENTRACK_LICENCE = ("code ISC (opentrack tracker-neuralnet); weights trained partly on "
+                      "non-commercial data: research / non-commercial use only")
+#: opentrack's head-pose network (:mod:`phjax.vision.monocular`), int8-quantised ONNX
+HEAD_POSE_ONNX = ModelFile(
+    name="head-pose",
+    filename="head-pose-0.4-small-int8.onnx",
+    sha256="fc887eda67f45621c1ed1ed12b8d23531880d0e830ea6bc431b659ff12877820",
+    size=3529912,
+    urls=(_OPENTRACK_RAW.format("766808196cf63ddf9ceb102fba193582daceb9de",
+                                "head-pose-0.4-small-int8.onnx"),),
+    licence=_OPENTRACK_LICENCE,
+)
+#: opentrack's whole-frame head localizer (optional detector of :mod:`phjax.vision.monocular`)
+HEAD_LOCALIZER_ONNX = ModelFile(
+    name="head-localizer",
+    filename="head-localizer.onnx",
+    sha256="f26679fe5e01a08dab0b3b9b586b613c68622775e0b8e14ddae53f30391f7402",
+    size=279403,
+    urls=(_OPENTRACK_RAW.format("f009bb52cab7bf3884b8a9b3a326aa9ce84d6299",
+                                "head-localizer.onnx"),),
+    licence=_OPENTRACK_LICENCE,
+)
+#: every model file the cache knows (YuNet and the monocular head-pose models): looked up by
+#: name, copied by :func:`seed_model_cache`
+KNOWN_MODELS = (YUNET_ONNX, YUNET_KORNIA, HEAD_POSE_ONNX, HEAD_LOCALIZER_ONNX)
+
 
 class ModelNotFoundError(FileNotFoundError):
     """A model file is missing from the cache (the message says how to get it)."""
@@ -174,12 +208,12 @@ def sha256_file(path: str | os.PathLike) -> str:
 def _model(model: ModelFile | str) -> ModelFile:
     if isinstance(model, ModelFile):
         return model
-    for m in MODELS.values():
+    for m in KNOWN_MODELS:
         if model in (m.name, m.filename):
             return m
     if model in MODELS:
         return MODELS[model]
-    raise ValueError(f"unknown model {model!r}; known: {[m.name for m in MODELS.values()]}")
+    raise ValueError(f"unknown model {model!r}; known: {[m.name for m in KNOWN_MODELS]}")
 
 
 def _instructions(m: ModelFile, directory: Path) -> str:
@@ -195,7 +229,7 @@ def model_path(model: ModelFile | str, directory: str | os.PathLike | None = Non
     """Path of a verified model file in the cache.
 
     Arguments:
-        model: :data:`YUNET_ONNX`, :data:`YUNET_KORNIA` or a model name / file name.
+        model: a :class:`ModelFile` of :data:`KNOWN_MODELS` or a model name / file name.
         directory: the cache directory (default :func:`model_dir`).
         download: fetch it (:func:`download_model`) when missing.
 
@@ -251,7 +285,8 @@ def seed_model_cache(from_dir: str | os.PathLike, directory: str | os.PathLike |
                      ) -> list[Path]:
     """Copy known model files from a local folder into the cache (no network).
 
-    Every regular file in ``from_dir`` whose size and SHA-256 match a known model is copied to
+    Every regular file in ``from_dir`` whose size and SHA-256 match a known model
+    (:data:`KNOWN_MODELS`) is copied to
     the cache under the model's canonical file name (so e.g. ``kornia_yunet_final.pth`` becomes
     ``yunet_final.pth``).
 
@@ -265,7 +300,7 @@ def seed_model_cache(from_dir: str | os.PathLike, directory: str | os.PathLike |
     if not src.is_dir():
         raise FileNotFoundError(f"not a folder: {src}")
     d = model_dir(directory)
-    by_size = {m.size: m for m in MODELS.values()}
+    by_size = {m.size: m for m in KNOWN_MODELS}
     out = []
     for p in sorted(src.iterdir()):
         if not p.is_file():

@@ -548,6 +548,55 @@ def test_ransac_recovers_pose_with_gross_outliers(seed, outlier_frac):
     assert rot_angle(umeyama_np(src, tgt, ONES, False)[0], rot) > np.deg2rad(0.5)
 
 
+@pytest.mark.parametrize("refine", [True, False])
+def test_ransac_threshold_just_inside_and_just_outside(refine):
+    """Outliers displaced by 0.9 and 1.1 thresholds: exactly the first count as inliers.
+
+    The gross-outlier problems above (2-30 cm at a 3 mm threshold) would pass with a threshold
+    three times too large; here a threshold off by more than ~10 %, or a residual compared
+    squared, changes the inlier set."""
+    rng = np.random.default_rng(11)
+    tau = 0.004
+    src = rng.normal(scale=0.08, size=(M, 3))
+    rot = Rotation.random(random_state=rng).as_matrix()
+    t = rng.normal(scale=0.5, size=3)
+    tgt = src @ rot.T + t
+    d = rng.normal(size=(M, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    order = rng.permutation(M)
+    inside, outside = order[:5], order[5:13]
+    tgt[inside] += 0.9 * tau * d[inside]
+    tgt[outside] += 1.1 * tau * d[outside]
+    expected = np.ones(M, bool)
+    expected[outside] = False
+    # the displaced points weigh little, so that the refit on all inliers stays close to the
+    # true transform (five full-weight points 0.9 thresholds off moved it by up to 0.2
+    # thresholds); the inlier test itself ignores weights
+    w = ONES.copy()
+    w[order[:13]] = 0.01
+    # the problem is what it claims under the independent least-squares fit on the expected
+    # inliers too (what the refit returns): the inside points stay inside, the others outside
+    r_ls, t_ls, _ = umeyama_np(src[expected], tgt[expected], w[expected], False)
+    resid = np.linalg.norm(src @ r_ls.T + t_ls - tgt, axis=1)
+    assert resid[inside].max() < 0.95 * tau and resid[outside].min() > 1.05 * tau
+
+    res = _ransac(jax.random.key(0), src, tgt, w, threshold=tau, refine=refine)
+    assert int(res.status) == OK
+    np.testing.assert_array_equal(np.asarray(res.inlier_mask), expected)
+    assert int(res.num_inliers) == expected.sum()
+    assert rot_angle(res.rotation, rot) < np.deg2rad(0.2)
+    if refine:
+        np.testing.assert_allclose(np.asarray(res.rotation), r_ls, atol=1e-10)
+        np.testing.assert_allclose(np.asarray(res.translation), t_ls, atol=1e-10)
+    # sensitivity: a threshold 20 % larger takes the outside points in, 20 % smaller drops
+    # the inside ones
+    wide = _ransac(jax.random.key(0), src, tgt, w, threshold=1.2 * tau, refine=refine)
+    assert np.asarray(wide.inlier_mask)[outside].all()
+    narrow = _ransac(jax.random.key(0), src, tgt, w, threshold=0.8 * tau, refine=refine)
+    assert not np.asarray(narrow.inlier_mask)[inside].any()
+    assert np.asarray(narrow.inlier_mask).sum() == M - 13
+
+
 def test_ransac_without_refine_with_scale_and_larger_samples():
     src, tgt, rot, t, inlier = _ransac_problem(4, outlier_frac=0.3)
     tgt = 1.5 * tgt
