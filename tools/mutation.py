@@ -42,7 +42,7 @@ Output: one line per mutant while running, then per module the kill rate and eve
 surviving mutant as a diff; ``summary.json`` and one Cosmic Ray session per module
 (``<name>.sqlite``, readable with ``cr-report``) in ``--out``.
 
-Requires ``cosmic-ray`` (the ``dev`` extra). Exit status 0 when the run completed (whatever
+Requires ``cosmic-ray`` (the ``mutation`` extra). Exit status 0 when the run completed (whatever
 the kill rate), 2 on bad arguments.
 """
 
