@@ -61,6 +61,7 @@ from .kalman import (
     _joseph_update,
     _linear_predict,
     _measurement_validity,
+    _rot_matrices,
     _rot_predict,
     _rot_update,
     _select,
@@ -423,7 +424,8 @@ def _rot_step(config, state, dt, q_meas, rot_valid, r_rot):
     q0, p0 = _recentre(s0[:, :3], ref, p0)
     w0 = s0[:, 3:]
     # per model: kalman.py's error-state prediction (the model's density) and update
-    qp, pp = jax.vmap(_rot_predict, (0, 0, 0, 0, None))(q0, w0, p0, _rot_qs(config, dtype), dt)
+    fr, qr = jax.vmap(_rot_matrices, (0, 0, None))(_rot_qs(config, dtype), w0, dt)
+    qp, pp = jax.vmap(_rot_predict, (0, 0, 0, 0, 0, None))(q0, w0, p0, fr, qr, dt)
     qu, wu, pu, y, s, nis_k, log_det = jax.vmap(_rot_update, (0, 0, 0, None, None, None))(
         qp, w0, pp, q_meas, rot_valid, r_rot)
     ll = _loglik(nis_k, log_det, y.shape[-1])

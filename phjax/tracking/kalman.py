@@ -491,7 +491,7 @@ def kalman_predict(
     """
     t_new, dt = _clamped_time(state, t)
     x, p = _linear_predict(state.x, state.P, *_pos_model(config, dt))
-    q, pr = _rot_predict(state.q, state.w, state.Pr, config.rot_process_noise, dt)
+    q, pr = _rot_predict(state.q, state.w, state.Pr, *_rot_model(config, state.w, dt), dt)
     pred = KalmanState(t_new, x, p, q, state.w, pr, state.initialized, state.last_update)
     moved = eqx.tree_at(lambda s: s.t, state, t_new)
     return _select(state.initialized, pred, moved)
@@ -523,10 +523,10 @@ def _linear_predict(x, p, f, q):
     return f @ x, _sym(f @ p @ f.T + q)
 
 
-def _rot_predict(q, w, pr, density, dt):
-    """Error-state orientation prediction over ``dt`` with angular-acceleration density
-    ``density``: ``q <- exp(w dt) q`` (normalised), ``Pr <- F Pr F^T + Q`` (module docs)."""
-    f, qn = _rot_matrices(density, w, dt)
+def _rot_predict(q, w, pr, f, qn, dt):
+    """Error-state orientation prediction over ``dt`` with the error-state transition ``F`` and
+    process noise ``Q`` (:func:`_rot_matrices`): ``q <- exp(w dt) q`` (normalised),
+    ``Pr <- F Pr F^T + Q`` (module docs)."""
     return quat_normalize(quat_mul(quat_from_rotvec(w * dt), q)), _sym(f @ pr @ f.T + qn)
 
 
@@ -740,8 +740,8 @@ def rts_smooth(config: KalmanConfig, filtered_states: KalmanState) -> KalmanStat
         x_s = cur.x + gain @ (nxt.x - x_pred)
         p_s = _sym(cur.P + gain @ (nxt.P - p_pred) @ gain.T)
         # orientation: multiplicative RTS in the error coordinates of the filtered state
-        fr, _ = _rot_model(config, cur.w, dt)
-        q_pred, pr_pred = _rot_predict(cur.q, cur.w, cur.Pr, config.rot_process_noise, dt)
+        fr, qr = _rot_model(config, cur.w, dt)
+        q_pred, pr_pred = _rot_predict(cur.q, cur.w, cur.Pr, fr, qr, dt)
         e_theta = _canonical_rotvec(quat_mul(nxt.q, quat_conj(q_pred)))
         e = jnp.concatenate([e_theta, nxt.w - cur.w])
         jinv = _so3_left_jacobian_inv(e_theta)
