@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 
+import equinox as eqx
 import jax
 
 try:  # JAX's own test for "not inside a trace" (private; a public fallback below)
@@ -23,7 +24,7 @@ except ImportError:  # pragma: no cover - depends on the JAX version
     def _top_level() -> bool:
         return not isinstance(jax.numpy.zeros(()), jax.core.Tracer)
 
-__all__ = ["COMPILER_OPTIONS", "jit"]
+__all__ = ["COMPILER_OPTIONS", "filter_jit", "jit"]
 
 #: XLA options of every program phjax compiles (see the module docs)
 COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
@@ -57,3 +58,43 @@ def jit(fun=None, /, **kwargs):
     if fun is None:
         return functools.partial(jit, **kwargs)
     return _Jitted(fun, kwargs)
+
+
+def filter_jit(fun):
+    """``eqx.filter_jit(fun)`` compiled with :data:`COMPILER_OPTIONS`: array leaves of the
+    arguments are traced, every other leaf (Python scalars, strings, functions, static Module
+    fields) is static and must be hashable. Use it for functions that take Modules (problems,
+    solvers, curves): ``eqx.filter_jit`` itself takes no compiler options, and the programs
+    it compiles for the tuner (the differentiated stream) are phjax's largest."""
+
+    def run(static, treedef, dynamic):
+        leaves = [d if s is _DYNAMIC else s for s, d in zip(static, _fill(static, dynamic))]
+        args, kwargs = jax.tree.unflatten(treedef, leaves)
+        return fun(*args, **kwargs)
+
+    jitted = jit(run, static_argnums=(0, 1))
+
+    @functools.wraps(fun)
+    def wrapper(*args, **kwargs):
+        leaves, treedef = jax.tree.flatten((args, kwargs))
+        static = tuple(_DYNAMIC if eqx.is_array(x) else x for x in leaves)
+        dynamic = [x for x in leaves if eqx.is_array(x)]
+        return jitted(static, treedef, dynamic)
+
+    return wrapper
+
+
+class _Dynamic:
+    """Placeholder of a traced leaf in :func:`filter_jit`'s static part."""
+
+    def __repr__(self) -> str:
+        return "<dynamic>"
+
+
+_DYNAMIC = _Dynamic()
+
+
+def _fill(static, dynamic):
+    """``dynamic``'s leaves at the ``_DYNAMIC`` positions of ``static``, ``None`` elsewhere."""
+    it = iter(dynamic)
+    return [next(it) if s is _DYNAMIC else None for s in static]

@@ -45,6 +45,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from .._jit import filter_jit
 from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
@@ -286,7 +287,7 @@ def _core_jvp(settings, primals, tangents):
     return (Z, aux), (dZ, aux_t)
 
 
-@eqx.filter_jit
+@filter_jit
 def _solve(points, d_start, d_end, clamp_start: bool, clamp_end: bool, max_steps: int,
            rtol, atol):
     dp_world = jnp.diff(points, axis=0)

@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 from jaxtyping import Array
+from .._jit import filter_jit
 
 
 # Ask-tell with optimistix: BFGS evaluates its objective only at ``state.y_eval`` (the trial
@@ -47,14 +48,14 @@ _OPTIONS: dict[str, Any] = {}
 _TAGS: frozenset = frozenset()
 
 
-@eqx.filter_jit
+@filter_jit
 def _solver_init(solver, y):
     told = _Told(y, jnp.zeros((), y.dtype), jnp.zeros_like(y))
     f_struct = jax.ShapeDtypeStruct((), y.dtype)
     return solver.init(_told_objective, y, told, _OPTIONS, f_struct, None, _TAGS)
 
 
-@eqx.filter_jit
+@filter_jit
 def _solver_step(solver, y, state, told):
     y, state, _ = solver.step(_told_objective, y, told, _OPTIONS, state, _TAGS)
     done, result = solver.terminate(_told_objective, y, told, _OPTIONS, state, _TAGS)

@@ -21,12 +21,15 @@ from .kalman import KalmanConfig
 class TuningData(eqx.Module):
     """Recordings prepared for the loss, padded to common lengths and stacked (axis 0 = recording).
 
+    The common lengths are rounded up to size classes (:mod:`phjax.tracking._shapes`), so data
+    sets of different lengths share one compiled loss and gradient.
+
     Built by :func:`prepare_recordings` (simulated measurements) or :func:`tuning_data` (given
     measurements). Times are relative to each recording's first measurement, positions to its
     first known ground-truth position at a render time.
 
     Fields:
-        times: ``(R, N)`` measurement times, s (padding: NaN frames after the end).
+        times: ``(R, N)`` measurement times, s (padding: lost frames after the end).
         positions: ``(R, N, 3)`` measured positions, m (NaN = lost frame).
         quaternions: ``(R, N, 4)`` measured orientations, wxyz.
         render_times: ``(R, M)`` render times, s.
@@ -258,8 +261,9 @@ def tuning_data(
         dtype: floating dtype of the arrays (default: JAX's default float).
 
     Returns:
-        A :class:`TuningData` (recordings padded to common lengths and stacked).
+        A :class:`TuningData` (recordings padded to common lengths, rounded up to size classes, and stacked).
     """
+    from ._shapes import MIN_FRAMES, MIN_RENDER, size_class
     from .baselines import TUNED, kalman_extrapolation
 
     if reference_config is None:
@@ -285,8 +289,10 @@ def tuning_data(
             rp = np.full_like(rp, np.nan)
         ref = np.asarray(stream_metrics(r, rp, rq, gp, gq), np.float64)
         recs.append((mt, mp, mq, r, gp, gq, np.where(ref > 0, ref, np.nan)))
-    n = max(x[0].size for x in recs)
-    m = max(x[3].size for x in recs)
+    # common lengths rounded up to their size classes (phjax.tracking._shapes): data sets of
+    # different lengths share one compiled loss and gradient
+    n = size_class(max(x[0].size for x in recs), MIN_FRAMES)
+    m = size_class(max(x[3].size for x in recs), MIN_RENDER)
     cols = [[] for _ in range(8)]
     for mt, mp, mq, r, gp, gq, ref in recs:
         pad_n, pad_m = n - mt.size, m - r.size
@@ -296,7 +302,9 @@ def tuning_data(
         cols[0].append(np.concatenate([mt, t_pad]))
         cols[1].append(np.concatenate([mp, np.full((pad_n, 3), np.nan)]))
         cols[2].append(np.concatenate([mq, np.full((pad_n, 4), np.nan)]))
-        cols[3].append(np.concatenate([r, r[-1] + (r[-1] - r[-2]) * np.arange(1, pad_m + 1)]))
+        # (spaced by the mean render period: rounding of one difference would grow with k)
+        period = (r[-1] - r[0]) / (r.size - 1)
+        cols[3].append(np.concatenate([r, r[-1] + period * np.arange(1, pad_m + 1)]))
         cols[4].append(np.arange(m) < r.size)
         cols[5].append(np.concatenate([gp, np.full((pad_m, 3), np.nan)]))
         cols[6].append(np.concatenate([gq, np.full((pad_m, 4), np.nan)]))

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
+from .._jit import filter_jit
 
 from ._tuning_bfgs import _bfgs
 from ._tuning_data import TuningData, prepare_recordings
@@ -135,7 +136,7 @@ def make_problem(
                          normalize)
 
 
-@eqx.filter_jit
+@filter_jit
 def _value_and_grad(problem: TuningProblem, y, autodiff_mode: str):
     """``(loss, gradient, terms)`` at log-parameters ``y``."""
     if autodiff_mode == "fwd":
