@@ -83,9 +83,16 @@ def _float_leaf_paths(config: TrackerConfig) -> dict[str, tuple[str | int, ...]]
     return out
 
 
+#: leaves tuned as they are (any sign, zero allowed) rather than in log space
+_LINEAR = ("adapt", "lookahead")
+
+
 def _is_log(path) -> bool:
-    """Leaves tuned as they are (any sign): logarithms already (``log_*``) and ``adapt``."""
-    return str(path[-1]).startswith("log_") or path[-1] == "adapt"
+    """Leaves tuned as they are (any sign): logarithms already (``log_*``), ``adapt`` and
+    ``lookahead`` (0 by default; tuned, it becomes the lead that best cancels the stream's lag
+    against the ground truth of the data, which :func:`tune_tracker` scores at the render
+    times)."""
+    return str(path[-1]).startswith("log_") or path[-1] in _LINEAR
 
 
 def tunable_parameters(config: TrackerConfig | None = None) -> tuple[str, ...]:

@@ -110,6 +110,14 @@ class TrackerConfig(eqx.Module):
         coast_time: after a segment ends without a new frame, keep moving with the end
             velocities for this long, s (default 0.1).
         stop_time: then let the velocities decay with this time constant, s (default 0.05).
+        lookahead: display-time prediction, s (default 0): the pose rendered at time ``t`` is
+            the one predicted for ``t + lookahead``, the moment the frame reaches the eye. Set
+            it to the display's motion-to-photon latency minus what the consuming runtime
+            already predicts (a VR runtime that predicts to its own display time needs 0; a
+            renderer that draws the pose as received, 20-50 ms). The whole stream is shifted:
+            each segment starts at the pose rendered at the camera frame and settles on the
+            filter's prediction for ``t_k + lookahead + horizon``, so the stream stays C1 and
+            coasts and stops as before. Differentiable like the other fields.
     """
 
     kalman: KalmanConfig = eqx.field(default_factory=KalmanConfig)
@@ -118,6 +126,7 @@ class TrackerConfig(eqx.Module):
     adapt: float = 0.0
     coast_time: float = 0.1
     stop_time: float = 0.05
+    lookahead: float = 0.0
 
 
 #: The correction ``c(t)`` = rendered minus predicted pose decays like a critically damped
@@ -130,16 +139,19 @@ _KNOT = 0.4
 class RenderSegment(eqx.Module):
     """Everything a render sample needs: the current segment and how to coast past its end.
 
+    The curves are functions of *display time*: the pose rendered at time ``tau`` is the
+    curves' pose at ``tau + lookahead``.
+
     Fields:
         started: whether a valid measurement has been seen (before that samples are NaN).
-        start: ``(2,)`` start times of the segment's two pieces, s.
+        start: ``(2,)`` start times of the segment's two pieces (display time), s.
         curve: the two position pieces, a :class:`PHQuintic` batch of 2, each on its own
             parameter ``s = (t - start) / duration``.
         rotation: the two orientation pieces, a :class:`QuaternionHermite` batch of 2 (its
             ``duration`` field holds the pieces' durations, s).
         p_end, v_end, q_end, w_end: end pose and velocities of the second piece (``q_end`` with
             the sign of its ``rotation(1)``); past the end the pose coasts from them.
-        coast_time, stop_time: the coasting parameters of the config of the last update, s.
+        coast_time, stop_time, lookahead: those of the config of the last update, s.
     """
 
     started: Bool[Array, ""]
@@ -152,21 +164,23 @@ class RenderSegment(eqx.Module):
     w_end: Float[Array, "3"]
     coast_time: Float[Array, ""]
     stop_time: Float[Array, ""]
+    lookahead: Float[Array, ""]
 
     @property
     def end(self) -> Float[Array, ""]:
-        """End time of the segment (of its second piece), s."""
+        """End time of the segment (of its second piece, display time), s."""
         return self.start[1] + self.rotation.duration[1]
 
     def evaluate(self, tau: Float[ArrayLike, ""], velocities: bool = True):
-        """Rendered pose at one time ``tau >=`` the segment start.
+        """Rendered pose at one render time ``tau``: the curves' pose at ``tau + lookahead``.
 
         Inside the segment the piece that covers ``tau`` (the second from its start on) is
         evaluated; past the end the pose moves with the end velocities for ``coast_time``, then
         the velocities decay with time constant ``stop_time`` (C1), so the pose comes to rest.
 
         Arguments:
-            tau: render time, s (a scalar; ``jax.vmap`` for several).
+            tau: render time, s (a scalar; ``jax.vmap`` for several), at or after the last
+                update.
             velocities: also return the velocities (else ``None`` in their places).
 
         Returns:
@@ -174,7 +188,7 @@ class RenderSegment(eqx.Module):
             angular velocity in the world frame, rad/s; NaN before the first valid measurement.
         """
         dtype = self.start.dtype
-        tau = jnp.asarray(tau, dtype)
+        tau = jnp.asarray(tau, dtype) + self.lookahead
         i = (tau >= self.start[1]).astype(jnp.int32)
         curve = jax.tree.map(lambda x: x[i], self.curve)
         rotation = jax.tree.map(lambda x: x[i], self.rotation)
@@ -203,8 +217,8 @@ class TrackerState(eqx.Module):
         filter: the Kalman (or IMM) filter state.
         segment: the render segment (:class:`RenderSegment`): all a render sample reads.
 
-    Properties (views): ``t0``, the time of the last segment start (the last camera frame
-    used), s; ``started``, whether a valid measurement has been seen (before that samples are
+    Properties (views): ``t0``, the render time of the last segment start (the last camera
+    frame used), s; ``started``, whether a valid measurement has been seen (before that samples are
     NaN); ``duration`` (2,), the durations of the segment's two pieces, s;
     ``curve``, the two position pieces (a :class:`PHQuintic` batch of 2), each on its own
     parameter ``(t - start) / duration``; ``rotation``, the two orientation pieces (a
@@ -216,7 +230,7 @@ class TrackerState(eqx.Module):
 
     @property
     def t0(self) -> Float[Array, ""]:
-        return self.segment.start[0]
+        return self.segment.start[0] - self.segment.lookahead
 
     @property
     def started(self) -> Bool[Array, ""]:
@@ -247,7 +261,8 @@ def _make_state(config, kf, t0, duration, curve, rotation, started, ends) -> Tra
         started=jnp.asarray(started), start=jnp.stack([t0, t0 + duration[0]]), curve=curve,
         rotation=rotation, p_end=p_end, v_end=v_end, q_end=q_end, w_end=w_end,
         coast_time=jnp.asarray(config.coast_time, dtype),
-        stop_time=jnp.asarray(config.stop_time, dtype))
+        stop_time=jnp.asarray(config.stop_time, dtype),
+        lookahead=jnp.asarray(config.lookahead, dtype))
     return TrackerState(kf, segment)
 
 
@@ -290,14 +305,19 @@ def tracker_init(config: TrackerConfig | None = None, t: float = 0.0, dtype=None
 
 @jit
 def _init(config: TrackerConfig, t) -> TrackerState:
-    """:func:`tracker_init` as one compiled program (run eagerly, its few hundred operations
-    were compiled one by one: 85 compilations before a stream's first update)."""
+    """:func:`tracker_init` as one compiled program (run eagerly, its operations were compiled
+    one by one: 85 compilations before a stream's first update)."""
     dtype = t.dtype
     kf = _filter_uninitialized(config, t, dtype)
+    # a head at rest at the origin, written down rather than built by hermite_quintic (whose
+    # ~80 kernels would be compiled into every program that starts a stream): the zero
+    # quaternion polynomial is the still PH quintic, zero increments the constant rotation
     z3 = jnp.zeros((2, 3), dtype)
+    z4 = jnp.zeros((2, 4), dtype)
     q = jnp.broadcast_to(jnp.asarray([1.0, 0, 0, 0], dtype), (2, 4))
     dur = jnp.full((2,), 0.5, dtype)
-    curve, rot = _segment(z3, z3, q, z3, z3, z3, q, z3, dur)
+    curve = PHQuintic(A0=z4, A1=z4, A2=z4, control_points=jnp.zeros((2, 6, 3), dtype))
+    rot = QuaternionHermite(q0=q, w1=z3, w2=z3, w3=z3, duration=dur)
     return _make_state(config, kf, t, dur, curve, rot, jnp.asarray(False),
                        (z3[0], z3[0], q[0], z3[0]))
 
@@ -384,14 +404,15 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion)
     position = jnp.asarray(position, dtype)
     quaternion = jnp.asarray(quaternion, dtype)
     was_init = state.filter.initialized
-    p_r, v_r, q_r, w_r = state.segment.evaluate(t)
+    p_r, v_r, q_r, w_r = state.segment.evaluate(t)  # the pose shown at t
     kf, info = _filter_step(config, state.filter, t, position, quaternion)
+    u = t + jnp.asarray(config.lookahead, dtype)  # the display time of the pose shown at t
     used = info.pos_used | info.rot_used
     h = jnp.asarray(config.horizon, dtype) * _adaptive_factor(config, kf, dtype)
     tc = _SETTLE * h  # time constant of the correction
     t1 = _KNOT * h  # the knot between the two pieces
-    # the filter's estimate at t (kf.t == t: its mean, normalised as predict_pose would)
-    pred = jax.vmap(lambda tau: _filter_predict(config, kf, tau))(jnp.stack([t, t + t1, t + h]))
+    # the filter's prediction for the display time u (its mean when the lookahead is 0)
+    pred = jax.vmap(lambda tau: _filter_predict(config, kf, tau))(jnp.stack([u, u + t1, u + h]))
     (p_k, p_1, p_T), (q_k, q_1, q_T), (v_k, v_1, v_T), (w_k, w_1, w_T) = pred
     # first frame: start at the filter's estimate at rest
     z = jnp.zeros(3, dtype)
@@ -416,7 +437,7 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion)
                           st(p_m, p_T), st(v_m, v_T), st(q_m, q_T), st(w_m, w_T), dur)
     q_end = _rotation_end(q_m, q_T, w_m, w_T, h - t1)
     rebuild = used & kf.initialized
-    new = _make_state(config, kf, t, dur, curve, rot, state.started | kf.initialized,
+    new = _make_state(config, kf, u, dur, curve, rot, state.started | kf.initialized,
                       (p_T, v_T, q_end, w_T))
     keep = eqx.tree_at(lambda x: x.filter, state, kf)
     return jax.tree.map(lambda a, b: jnp.where(rebuild, a, b), new, keep)

@@ -44,8 +44,10 @@ rotation is up to the weights).
 
 **Parameters** are optimised in log space (``value = exp(y)``), which keeps them positive and
 makes the problem scale free; leaves that are logarithms already (``log_*``: the IMM's model
-densities ``log_q`` and ``log_switch_rate``) and ``adapt`` (any sign) are optimised as they
-are. Note that scaling all noise densities *and* measurement stds of
+densities ``log_q`` and ``log_switch_rate``), ``adapt`` and ``lookahead`` (any sign) are
+optimised as they are. ``lookahead`` is not tuned by default: it is set from the display's
+latency. Named in ``parameters`` it becomes the lead that best cancels the stream's lag against
+the data's ground truth at the render times. Note that scaling all noise densities *and* measurement stds of
 one channel by the same factor changes the filter only through the initial covariance, so
 tuning process and measurement noise together leaves a nearly flat direction; BFGS copes, but
 the individual values are less meaningful than their ratio.

@@ -109,6 +109,19 @@ def test_stream_metrics_ignore_masked_and_nan_samples():
     np.testing.assert_array_equal(none, 0.0)
 
 
+def test_lookahead_is_tunable_from_zero_and_not_tuned_by_default(data):
+    """``lookahead`` (default 0) is a tunable leaf optimised as it is (a log-space parameter
+    could not start at 0), and the default parameter sets leave it fixed."""
+    assert "lookahead" in tuning.tunable_parameters()
+    assert "lookahead" not in tuning.default_parameters()
+    assert "lookahead" not in tuning.default_parameters(KF)
+    prob = tuning.make_problem(data, config=KF, parameters=("horizon", "lookahead"))
+    y = np.asarray(prob.params_from_config(pj.TrackerConfig(imm=None, lookahead=0.0)))
+    np.testing.assert_allclose(y, [math.log(KF.horizon), 0.0])
+    back = prob.config_from_params(jnp.asarray([math.log(0.03), -0.01]))
+    assert math.isclose(float(back.horizon), 0.03) and math.isclose(float(back.lookahead), -0.01)
+
+
 # --------------------------------------------------------------------------------- gradients
 def test_gradient_matches_central_differences(problem):
     """d loss / d log(parameter) for every tuned parameter vs central differences (float64).
