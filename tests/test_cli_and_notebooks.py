@@ -23,19 +23,52 @@ def test_demo_curve_on_tum(capsys):
     assert "arc length per segment" in out and "curvature" in out
 
 
+def _choice_rows(out: str, lookahead_ms: int) -> list[list[str]]:
+    """The cells of the rows of the demo's table at one lookahead (header left out)."""
+    block = out.split(f"### Lookahead {lookahead_ms} ms")[1].split("\n\n")[1]
+    rows = [ln for ln in block.splitlines() if ln.startswith("| ")][1:]
+    return [[c.strip() for c in ln.strip().strip("|").split("|")] for ln in rows]
+
+
 def test_demo_prints_table_and_writes_plot(tmp_path, capsys):
+    from phjax.evaluation.display import CHOICES_LEGEND, KNOB_BASELINES
+
     png = tmp_path / "eval.png"
     assert main(["demo", "--duration", "6", "--plot", str(png), "--no-progress"]) == 0
     out = capsys.readouterr().out
+    # what a user chooses between, at lookahead 0 and at a display latency of 30 ms: phjax,
+    # then each predictor at its tuned knob and as smooth as phjax (the frontier)
+    assert CHOICES_LEGEND in out
+    names = [b.name for b in KNOB_BASELINES]
+    for lookahead in (0, 30):
+        rows = _choice_rows(out, lookahead)
+        assert rows[0][0] == "**phjax (causal)**" and all(c.startswith("**") for c in rows[0][2:])
+        assert [r[0] for r in rows[1::2]] == names and all(r[0] == "" for r in rows[2::2])
+        assert all(r[1].startswith("tuned: ") for r in rows[1::2])
+        jerks = {"pos": (3, 0), "rot": (6, 1)}  # column, half of the 'pos / rot' setting
+        for r in rows[2::2]:
+            assert r[1].startswith("as smooth as phjax: ")
+            settings = r[1].removeprefix("as smooth as phjax: ").split(" / ")
+            for col, half in jerks.values():
+                mine, theirs = float(rows[0][col].strip("*")), float(r[col])
+                # a knob found is at most as jerky as phjax (within 1 %); 'never' otherwise
+                assert (theirs <= 1.01 * mine) == (not settings[half].startswith("never")), r
+        assert f"At phjax's smoothness, lookahead {lookahead} ms: position: phjax" in out
+    # every method at its tuned setting (lookahead 0), best causal values in bold; the old row
+    # of 'the strongest baseline of each column' (a different method per column) is gone
     for name in ["phjax (causal)", "phjax (offline)", "kalman-cv extrapolation",
                  "alpha-beta extrapolation", "one-euro + hold", "one-euro + extrapolation",
                  "snapshot interpolation", "imm extrapolation", "raw hold", "cubic spline (scipy)"]:
-        assert f"| {name} |" in out
+        assert f"| {name} | yes |" in out or f"| {name} | no (offline) |" in out
     assert LEGEND in out  # the line saying what the numbers mean
-    assert "| phjax (causal) / it |" in out and "| strongest baseline |" in out
-    rows = [ln for ln in out.splitlines() if ln.startswith("| ") and "causal" not in ln[:8]]
+    assert "strongest baseline" not in out
+    table = out.split("## Every method at its tuned setting")[1]
+    rows = [ln for ln in table.splitlines() if ln.startswith("| ") and "causal" not in ln[:8]]
     assert sum("**" in ln for ln in rows) >= 3  # best causal values are marked
+    # the frontier figure beside the table, and the per-method figure beside it
+    assert f"frontier plot written to {png}" in out
     assert png.exists() and png.stat().st_size > 10_000
+    assert (tmp_path / "eval_methods.png").stat().st_size > 10_000
 
 
 def test_demo_rgbd_end_to_end(tmp_path, capsys, monkeypatch):

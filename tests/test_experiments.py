@@ -394,3 +394,49 @@ def test_predictor_bound_smoke(tmp_path):
         # the oracle is fitted on the scored recording: never worse than the train fit there
         assert float(r["fir_oracle"]) <= float(r["fir_train"]) * (1 + 1e-9), r
     assert "FIR oracle / IMM" in (out / "predictor_bound.md").read_text()
+
+
+# ----------------------------------------------------------------------------------------------
+# the frontier at the display time (display_frontier.py)
+# ----------------------------------------------------------------------------------------------
+
+
+def test_display_frontier_smoke_on_named_recordings(tmp_path):
+    """The display-time frontier on recordings named by path (as on data we do not have):
+    tables for each lookahead, and the truth really is taken at the display time (the raw
+    hold, which does not predict, is exactly 20 ms later against it at 20 ms; the phjax stream
+    predicts, so it is far less late)."""
+    files = [shared_path("tum_rgbd_groundtruth", f"{n}-groundtruth.txt")
+             for n in ("fr1_xyz", "fr1_desk")]
+    files.append(shared_path("tum_vi_room_groundtruth", "room1_mocap_groundtruth.csv"))
+    import json
+
+    import display_frontier as dfr
+
+    out = tmp_path / "df"
+    assert dfr.main(["--smoke", "--out", str(out), "--recordings", *map(str, files)]) == 0
+    text = (out / "display_frontier.md").read_text()
+    assert "## Target: phjax / strongest external baseline" in text
+    assert "| 20 ms | test |" in text and "| 0 ms | all |" in text
+    assert "## Lookahead 20 ms" in text and "At equal smoothness" in text
+    rows = _rows(out / "display_frontier.csv")
+    tuned = json.loads((out / "tuned.json").read_text())
+    h20 = tuned["20 ms"]["phjax stream"][0]
+
+    def get(method, L, key, knob=None):
+        return {r["recording"]: float(r[key]) for r in rows if r["method"] == method
+                and r["lookahead_ms"] == L and (knob is None or r["knob"] == knob)}
+
+    for key in ("pos_lag_ms", "rot_lag_ms"):
+        h0, h20_ = get("raw hold", "0", key), get("raw hold", "20", key)
+        assert len(h0) == 3
+        inside = [rec for rec in h0 if -30 < h0[rec] < 100]  # not at an end of the lag grid
+        assert len(inside) >= 2
+        for rec in inside:
+            assert h20_[rec] == pytest.approx(h0[rec] + 20.0, abs=1e-3)
+    stream = get("phjax stream", "20", "pos_lag_ms", h20)
+    hold20 = get("raw hold", "20", "pos_lag_ms")
+    assert np.median(list(stream.values())) < np.median(list(hold20.values())) - 10.0
+    rmse0, rmse20 = get("raw hold", "0", "pos_rmse_mm"), get("raw hold", "20", "pos_rmse_mm")
+    assert all(rmse20[k] > rmse0[k] for k in rmse0)
+    assert (out / "display_frontier.png").stat().st_size > 20_000

@@ -16,6 +16,7 @@ from ._common import (
     add_sensor_arguments,
     check_fits,
     check_output,
+    nonnegative_float,
     positive_float,
     read_input,
     replaced_note,
@@ -37,38 +38,71 @@ def _sensor(args):
                        jitter=args.jitter)
 
 
+def _methods_plot_path(plot: str):
+    """The per-method figure written beside the frontier figure ``plot``."""
+    from pathlib import Path
+
+    p = Path(plot)
+    return p.with_name(f"{p.stem}_methods{p.suffix or '.png'}")
+
+
 def _run_evaluation(times, positions, quaternions, args, title: str) -> int:
+    import equinox as eqx
+
+    from ..evaluation.display import compare_at_display, format_choices, plot_choices
     from ..evaluation.report import (
+        LEGEND,
         default_methods,
         evaluate_recording,
         format_table,
         plot_evaluation,
     )
+    from ..tracking.tracker import TrackerConfig
     from ._tune import config_from_args
 
-    config = config_from_args(args)
+    config = config_from_args(args) or TrackerConfig()
+    config = eqx.tree_at(lambda c: c.lookahead, config, 0.0)  # the display times are set below
     if args.plot:
         check_output(args.plot, "plot")
+        check_output(_methods_plot_path(args.plot), "plot")
     span = float(np.nanmax(times) - np.nanmin(times)) if len(times) else 0.0
     check_fits({f"--rate {args.rate:g} Hz over {span:.3g} s":
                 (span * args.rate, BYTES_PER_RENDER_SAMPLE["evaluate"]),
                 f"--camera-rate {args.camera_rate:g} Hz over {span:.3g} s":
                 (span * args.camera_rate, BYTES_PER_CAMERA_FRAME)})
+    lookaheads = (0.0,) + ((args.lookahead / 1e3,) if args.lookahead > 0 else ())
     t0 = time.perf_counter()
     result = evaluate_recording(times, positions, quaternions, sensor=_sensor(args),
                                 render_rate=args.rate, seed=args.seed, progress=not args.no_progress,
                                 methods=default_methods(config))
+    comparison = compare_at_display(times, positions, quaternions, lookaheads=lookaheads,
+                                    tracker_config=config, sensor=_sensor(args),
+                                    render_rate=args.rate, seed=args.seed,
+                                    at_render_time=result.metrics,
+                                    progress=not args.no_progress)
     elapsed = time.perf_counter() - t0
     print(f"# {title}")
     print(f"sensor: {args.camera_rate:g} Hz, sigma_p {args.sigma_p:g} mm, sigma_r {args.sigma_r:g} deg, "
           f"dropout {100 * args.dropout:g} %, jitter {args.jitter:g}; render {args.rate:g} Hz; "
           f"seed {args.seed}; {elapsed:.1f} s")
     print()
-    print(format_table(result.metrics, result.causal))
+    print("## What you choose between: phjax, and each predictor tuned or as smooth as phjax")
+    print()
+    print(format_choices(comparison))
+    print()
+    print("## Every method at its tuned setting (lookahead 0)")
+    print()
+    print(format_table(result.metrics, result.causal, legend=False))
+    print()
+    print(LEGEND)
     if args.plot:
         note = replaced_note(args.plot)
-        path = plot_evaluation(result, args.plot)
-        print(f"\nplot written to {path}{note}")
+        path = plot_choices(comparison, args.plot)
+        print(f"\nfrontier plot written to {path}{note}")
+        extra = _methods_plot_path(args.plot)
+        note = replaced_note(extra)
+        path = plot_evaluation(result, extra)
+        print(f"per-method plot (lookahead 0) written to {path}{note}")
     return 0
 
 
@@ -159,9 +193,16 @@ def cmd_smooth(args) -> int:
 
 def _sensor_args(p, rgbd: bool = False):
     add_sensor_arguments(p.add_argument_group("sensor model and rendering"))
+    p.add_argument("--lookahead", type=nonnegative_float, default=30.0, metavar="MS",
+                   help="the display latency to compare at besides 0, ms (default 30: a frame "
+                   "shown 30 ms after the pose is read; every method then predicts the pose for "
+                   "that display time and is scored against the truth there; 0: only the "
+                   "comparison at the render time)")
     p.add_argument("--plot", default="phjax_evaluation.png", metavar="PNG",
-                   help="output: the PNG plot (default phjax_evaluation.png in the current "
-                   "folder; '' for none); an existing file is replaced (the output says so)"
+                   help="output: the PNG plot of the accuracy / smoothness frontier at each "
+                   "lookahead, and beside it PNG_methods.png (every method's RMSE, jerk and "
+                   "lag, and a zoom on the fastest motion) (default phjax_evaluation.png in the "
+                   "current folder; '' for none); existing files are replaced (the output says so)"
                    + ("; with --rgbd no plot is drawn and the render-rate stream goes to this "
                       "path with the suffix .tum (default phjax_evaluation.tum; a temporary "
                       "file with --plot '')" if rgbd else ""))
@@ -176,11 +217,17 @@ def add_commands(sub) -> None:
         "package's synthetic seated-VR head motion; or a trajectory file you name), run the causal "
         "phjax stream, the offline reconstruction and every tuned causal baseline (Kalman CV "
         "extrapolation, alpha-beta extrapolation, One Euro + hold, One Euro + extrapolation, "
-        "snapshot interpolation, IMM extrapolation; references: raw hold, scipy cubic spline), "
-        "print the table (RMSE, RMS jerk, lag; best causal value per column in bold; phjax "
-        "against the strongest baseline per column) and write a PNG plot (RMSE vs jerk, lag, a "
-        "zoom on the fastest motion; --plot, default phjax_evaluation.png; with --rgbd the "
-        "render-rate stream phjax_evaluation.tum instead).")
+        "snapshot interpolation, IMM extrapolation; references: raw hold, scipy cubic spline). "
+        "First table: what you choose between, at lookahead 0 and at a display latency "
+        "(--lookahead, default 30 ms; every method predicts to the display time): phjax, and "
+        "each predictor (Kalman CV, alpha-beta, One Euro + extrapolation, the IMM "
+        "extrapolation) at its tuned knob and at the knob with the lowest RMSE among those at "
+        "most as jerky as phjax (the accuracy / smoothness frontier at phjax's smoothness; "
+        "'never' where no knob is that smooth), with RMSE, jerk and lag. Second table: every method at its tuned setting (RMSE, RMS jerk, lag; best "
+        "causal value per column in bold). Writes the frontier plot (RMSE vs jerk per knob, "
+        "each lookahead; --plot, default phjax_evaluation.png) and the per-method plot beside "
+        "it (phjax_evaluation_methods.png); with --rgbd the render-rate stream "
+        "phjax_evaluation.tum instead.")
     p.add_argument("input", nargs="?", help="optional ground-truth trajectory file (TUM, EuRoC, CSV, ...)")
     add_format_argument(p, "format of INPUT")
     p.add_argument("--duration", type=positive_float, default=60.0,
@@ -195,9 +242,11 @@ def add_commands(sub) -> None:
 
     p = sub.add_parser("evaluate", help="metrics of phjax and every baseline on a ground-truth file",
                        description="Like 'demo' on a ground-truth trajectory file: print the "
-                       "metrics table of phjax and every tuned baseline (best causal value per "
-                       "column in bold) and write the PNG plot (--plot, default "
-                       "phjax_evaluation.png).")
+                       "comparison at lookahead 0 and at --lookahead (each predictor tuned and "
+                       "as smooth as phjax), the metrics table of phjax and every tuned "
+                       "baseline (best causal value per column in bold), and write the frontier "
+                       "plot (--plot, default phjax_evaluation.png) and the per-method plot "
+                       "beside it.")
     p.add_argument("ground_truth", help="ground-truth trajectory (TUM .txt, EuRoC/TUM-VI .csv, phjax .csv)")
     add_format_argument(p)
     _sensor_args(p)

@@ -5,8 +5,11 @@
 * :mod:`~phjax.evaluation.report`: simulate a sensor on a ground-truth recording, run phjax and
   every baseline, score them, print the table and draw the figure (the ``phjax demo`` /
   ``phjax evaluate`` job).
+* :mod:`~phjax.evaluation.display`: what a user chooses between at the display time (a
+  lookahead): phjax, and each predictor at its tuned knob and as smooth as phjax (the frontier).
 """
 
+from .display import compare_at_display, format_choices, plot_choices
 from .metrics import (
     Lag,
     Latency,
@@ -40,15 +43,18 @@ __all__ = [
     "Latency",
     "Method",
     "Metric",
+    "compare_at_display",
     "default_methods",
     "evaluate",
     "evaluate_recording",
+    "format_choices",
     "format_table",
     "latency",
     "max_angular_velocity_jump",
     "max_velocity_jump",
     "mean_abs_curvature",
     "mean_abs_torsion",
+    "plot_choices",
     "plot_evaluation",
     "position_rmse",
     "rms_jerk_position",

@@ -157,21 +157,10 @@ def evaluate_recording(
     Returns:
         An :class:`EvaluationResult`.
     """
-    sensor = SensorModel() if sensor is None else sensor
     methods = default_methods() if methods is None else methods
-    gt_times = np.asarray(gt_times, np.float64)
-    origin = gt_times[0]
-    gt_t = gt_times - origin
-    gt_p = np.asarray(gt_positions, np.float64)
-    gt_q = np.asarray(gt_quaternions, np.float64)
-    frames = simulate_measurements(seed, gt_t, gt_p, gt_q, sensor)
-    mt, mp, mq = (np.asarray(x, np.float64) for x in frames)
+    gt_t, gt_p, gt_q, (mt, mp, mq), render, origin = simulate_and_grid(
+        gt_times, gt_positions, gt_quaternions, sensor=sensor, render_rate=render_rate, seed=seed)
     valid = np.isfinite(mq).all(-1)
-    if not np.any(valid):
-        raise ValueError("the simulated sensor produced no valid measurement")
-    start = mt[valid][0] + 1.0 / sensor.rate  # let every method see at least one frame
-    # a sample at a frame's own instant sees that frame, whatever the rounding of the clocks
-    render = snap_to_frames(np.asarray(frames[0]), np.arange(start, gt_t[-1], 1.0 / render_rate))
     gp, gq = interpolate_poses(gt_t, gt_p, gt_q, render, max_gap=max_gt_gap)
     gp, gq = np.asarray(gp, np.float64), np.asarray(gq, np.float64)
     iterator = methods
@@ -189,6 +178,36 @@ def evaluate_recording(
         metrics[m.name] = evaluate_metrics(render, p, q, gp, gq, boundary_times=mt[valid])
     return EvaluationResult(metrics, render + origin, gp, gq, (mt + origin, mp, mq), streams, causal,
                             baseline)
+
+
+def simulate_and_grid(gt_times, gt_positions, gt_quaternions, *,
+                      sensor: SensorModel | None = None, render_rate: float = 120.0,
+                      seed: int = 0):
+    """The measurements and render grid of :func:`evaluate_recording`.
+
+    Times are shifted to start at the first ground-truth sample; render times run at
+    ``render_rate`` from one camera period after the first valid frame to the last ground-truth
+    time, snapped onto coincident frame times.
+
+    Returns:
+        ``(gt_times, gt_positions, gt_quaternions, (times, positions, quaternions), render,
+        origin)``: float64 arrays, times relative to ``origin`` (the first ground-truth time).
+    """
+    sensor = SensorModel() if sensor is None else sensor
+    gt_times = np.asarray(gt_times, np.float64)
+    origin = gt_times[0]
+    gt_t = gt_times - origin
+    gt_p = np.asarray(gt_positions, np.float64)
+    gt_q = np.asarray(gt_quaternions, np.float64)
+    frames = simulate_measurements(seed, gt_t, gt_p, gt_q, sensor)
+    mt, mp, mq = (np.asarray(x, np.float64) for x in frames)
+    valid = np.isfinite(mq).all(-1)
+    if not np.any(valid):
+        raise ValueError("the simulated sensor produced no valid measurement")
+    start = mt[valid][0] + 1.0 / sensor.rate  # let every method see at least one frame
+    # a sample at a frame's own instant sees that frame, whatever the rounding of the clocks
+    render = snap_to_frames(mt, np.arange(start, gt_t[-1], 1.0 / render_rate))
+    return gt_t, gt_p, gt_q, (mt, mp, mq), np.asarray(render, np.float64), origin
 
 
 #: (metric key, header, scale to the shown unit); lower is better, lag: closer to zero

@@ -18,6 +18,13 @@ stream (absolute UNIX timestamps lose sub-millisecond resolution).
 * **Offline** methods (:func:`linear_slerp`, :func:`cubic_spline`) use all measurements (not
   causal); render times outside the valid range are clamped to the end poses.
 
+**Display-time prediction.** The extrapolating methods (:func:`kalman_extrapolation`,
+:func:`imm_extrapolation`, :func:`alpha_beta`, :func:`one_euro_extrapolation`) take a
+``lookahead`` (s, default 0), like :attr:`phjax.TrackerConfig.lookahead`: the output at render
+time ``tau`` is the pose predicted for ``tau + lookahead`` (the moment the frame reaches the eye)
+from the measurements with ``t <= tau`` (still causal: a larger lookahead never uses a later
+measurement). Compare such outputs with the ground truth at ``tau + lookahead``.
+
 :func:`hold`, :func:`one_euro` and :func:`linear_slerp` are JAX (``jit``-compiled, dtype-generic;
 :func:`one_euro` is differentiable in its parameters). :func:`one_euro_numpy` (float64 reference
 loop) and :func:`cubic_spline` (SciPy) return NumPy arrays.
@@ -413,44 +420,50 @@ def kalman_extrapolation(
     render_times: Float[ArrayLike, " m"],
     *,
     config=None,
+    lookahead: float | Float[ArrayLike, ""] = 0.0,
 ) -> tuple[Float[Array, "m 3"], Float[Array, "m 4"]]:
     """Causal Kalman constant-velocity extrapolation (the usual predictive baseline).
 
     The filter of :mod:`phjax.tracking.kalman` runs over the measurements; each render time ``tau`` shows
-    the mean prediction of the latest filtered state (``t_k <= tau``) at ``tau``: linear in
-    position, constant angular velocity in orientation, with a jump at every camera frame.
-    Orientation-only input (all positions NaN) tracks orientation and returns NaN positions.
+    the mean prediction of the latest filtered state (``t_k <= tau``) at ``tau + lookahead``:
+    linear in position, constant angular velocity in orientation, with a jump at every camera
+    frame. Orientation-only input (all positions NaN) tracks orientation and returns NaN
+    positions.
 
     Arguments:
         config: :class:`phjax.KalmanConfig` (default: the tuned noise :data:`TUNED`
             ``["kalman"]``).
+        lookahead: display-time prediction, s (default 0): the pose shown at ``tau`` is the one
+            predicted for ``tau + lookahead`` from the state at or before ``tau``.
     """
     from .kalman import KalmanConfig
     from .tracker import _run_recording
 
     config = KalmanConfig(**TUNED["kalman"]) if config is None else config
-    return _run_recording(_kalman_extrapolation_core, config, times, positions, quaternions,
-                          render_times, None)
+    return _run_recording(_kalman_extrapolation_core, (config, jnp.asarray(lookahead)), times,
+                          positions, quaternions, render_times, None)
 
 
-def _predict_from_latest(t, states, r, predict):
-    """Each render time's pose predicted (``predict(state, tau)``) from the latest filter state
-    at or before it; NaN before the first initialised state. Shared by the Kalman and IMM
-    extrapolation baselines."""
+def _predict_from_latest(t, states, r, predict, lookahead=0.0):
+    """Each render time's pose predicted for ``tau + lookahead`` (``predict(state, tau +
+    lookahead)``) from the latest filter state at or before ``tau``; NaN before the first
+    initialised state. Shared by the Kalman and IMM extrapolation baselines."""
     from .tracker import _latest_states
 
     sel, before = _latest_states(t, states, r)
-    pos, quat, _, _ = jax.vmap(predict)(sel, r)
+    pos, quat, _, _ = jax.vmap(predict)(sel, r + jnp.asarray(lookahead, r.dtype))
     nan = jnp.where(before | ~sel.initialized, jnp.nan, 0.0)[:, None]
     return pos + nan, quat + nan
 
 
 @jit
-def _kalman_extrapolation_core(config, t, p, q, r):
+def _kalman_extrapolation_core(cfg, t, p, q, r):
     from .kalman import kalman_filter, predict_pose
 
+    config, lookahead = cfg
     states, _ = kalman_filter(config, t, p, q)
-    return _predict_from_latest(t, states, r, lambda s, tau: predict_pose(config, s, tau))
+    return _predict_from_latest(t, states, r, lambda s, tau: predict_pose(config, s, tau),
+                                lookahead)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -459,15 +472,17 @@ def _kalman_extrapolation_core(config, t, p, q, r):
 # ----------------------------------------------------------------------------------------------
 
 
-def _extrapolate(times, valid_p, valid_q, xs, vs, qs, ws, render_times):
-    """``x_i + v_i (tau - t_i)`` and ``exp(w_i (tau - t_i)) q_i`` from the latest valid row
-    ``i`` (``t_i <= tau``) of each channel (NaN before the first)."""
+def _extrapolate(times, valid_p, valid_q, xs, vs, qs, ws, render_times, lookahead=0.0):
+    """``x_i + v_i (tau + L - t_i)`` and ``exp(w_i (tau + L - t_i)) q_i`` (``L`` =
+    ``lookahead``) from the latest valid row ``i`` (``t_i <= tau``) of each channel (NaN before
+    the first)."""
     k = jnp.searchsorted(times, render_times, side="right") - 1
+    display = render_times + jnp.asarray(lookahead, render_times.dtype)
     out = []
     for valid, x, v, plus in ((valid_p, xs, vs, _pos_plus), (valid_q, qs, ws, _rot_plus)):
         i = _last_valid(valid, k)
         j = jnp.clip(i, 0, times.shape[0] - 1)
-        dt = (render_times - times[j]).astype(xs.dtype)[:, None]
+        dt = (display - times[j]).astype(xs.dtype)[:, None]
         val = plus(x[j], v[j] * dt)
         out.append(jnp.where((i >= 0)[:, None], val, jnp.asarray(jnp.nan, xs.dtype)))
     return out[0], out[1]
@@ -482,6 +497,7 @@ def alpha_beta(
     *,
     alpha: float | Float[ArrayLike, ""] = 0.5,
     beta: float | Float[ArrayLike, ""] | None = None,
+    lookahead: float | Float[ArrayLike, ""] = 0.0,
 ) -> tuple[Float[Array, "m 3"], Float[Array, "m 4"]]:
     """Fixed-gain alpha-beta filter on positions and on SO(3), with linear extrapolation (causal).
 
@@ -490,12 +506,14 @@ def alpha_beta(
     ``x^- = x + v Te``, ``r = z - x^-``, ``x = x^- + alpha r``, ``v += beta r / Te``. On SO(3) the
     same in the world-frame tangent space: ``q^- = exp(w Te) q``, ``r = log(z (q^-)^-1)``
     (shortest arc), ``q = exp(alpha r) q^-``, ``w += beta r / Te``. A render time ``tau`` shows the
-    latest estimate extrapolated to ``tau`` (``x + v (tau - t)``, ``exp(w (tau - t)) q``).
+    latest estimate extrapolated to ``u = tau + lookahead`` (``x + v (u - t)``,
+    ``exp(w (u - t)) q``).
 
     Arguments:
         alpha: position / angle gain in (0, 1] (the knob: smaller is smoother and later).
         beta: velocity gain; default ``alpha^2 / (2 - alpha)`` (Benedict-Bordner, the
             steady-state gains of a critically designed tracker).
+        lookahead: display-time prediction, s (default 0): extrapolate to ``tau + lookahead``.
 
     Returns:
         ``(positions (m, 3), quaternions (m, 4))``; NaN before a channel's first valid sample.
@@ -531,7 +549,7 @@ def alpha_beta(
     ident = jnp.asarray(_IDENTITY, dtype)
     init = ((jnp.array(0), t[0], zero, zero), (jnp.array(0), t[0], ident, zero))
     _, (xs, vs, qs, ws) = lax.scan(step, init, (t, p, vp, q, vq))
-    return _extrapolate(t, vp, vq, xs, vs, qs, ws, render_times.astype(dtype))
+    return _extrapolate(t, vp, vq, xs, vs, qs, ws, render_times.astype(dtype), lookahead)
 
 
 @jit
@@ -544,19 +562,26 @@ def one_euro_extrapolation(
     min_cutoff: float | Float[ArrayLike, ""] = 1.0,
     beta: float | Float[ArrayLike, ""] = 0.0,
     d_cutoff: float | Float[ArrayLike, ""] = 1.0,
+    lookahead: float | Float[ArrayLike, ""] = 0.0,
 ) -> tuple[Float[Array, "m 3"], Float[Array, "m 4"]]:
     """One Euro filter (:func:`one_euro`) with linear extrapolation at render rate (causal).
 
-    A render time ``tau`` shows the latest filtered pose extrapolated with the filter's own
-    smoothed derivative: ``x_hat + dx_hat (tau - t)``, ``exp(w_hat (tau - t)) q_hat``. Same
-    parameters as :func:`one_euro` (the knob: ``min_cutoff``).
+    A render time ``tau`` shows the latest filtered pose (at its measurement time ``t``)
+    extrapolated to ``u = tau + lookahead`` with the filter's own smoothed derivative (the
+    ``d_cutoff`` low-pass of the raw derivative): ``x_hat + dx_hat (u - t)``,
+    ``exp(w_hat (u - t)) q_hat``. Same parameters as :func:`one_euro` (the knob:
+    ``min_cutoff``), plus
+
+    Arguments:
+        lookahead: display-time prediction, s (default 0): constant-velocity extrapolation of
+            the One Euro output by this much more.
     """
     times, positions, quaternions, render_times = _jnp_inputs(times, positions, quaternions,
                                                               render_times)
     (xs, dxs, vp), (qs, ws, vq) = _one_euro_scan(times, positions, quaternions, min_cutoff, beta,
                                                  d_cutoff)
     t = times.astype(xs.dtype)
-    return _extrapolate(t, vp, vq, xs, dxs, qs, ws, render_times.astype(xs.dtype))
+    return _extrapolate(t, vp, vq, xs, dxs, qs, ws, render_times.astype(xs.dtype), lookahead)
 
 
 def snapshot_interpolation(
@@ -624,27 +649,32 @@ def imm_extrapolation(
     render_times: Float[ArrayLike, " m"],
     *,
     config=None,
+    lookahead: float | Float[ArrayLike, ""] = 0.0,
 ) -> tuple[Float[Array, "m 3"], Float[Array, "m 4"]]:
     """Causal IMM extrapolation: the IMM filter (:mod:`phjax.tracking.imm`) without the PH stream.
 
-    Each render time shows the mode-probability-weighted mean prediction of the latest filtered
-    state (:func:`phjax.tracking.imm.imm_predict_pose`), with a jump at every camera frame, so
-    that the cost (or gain) of the smooth stream itself is visible.
+    Each render time ``tau`` shows the mode-probability-weighted mean prediction of the latest
+    filtered state (:func:`phjax.tracking.imm.imm_predict_pose`) for ``tau + lookahead``, with a
+    jump at every camera frame, so that the cost (or gain) of the smooth stream itself is
+    visible.
 
     Arguments:
         config: :class:`phjax.tracking.imm.IMMConfig` (default model set).
+        lookahead: display-time prediction, s (default 0), as in :func:`kalman_extrapolation`.
     """
     from .imm import IMMConfig
     from .tracker import _run_recording
 
     config = IMMConfig() if config is None else config
-    return _run_recording(_imm_extrapolation_core, config, times, positions, quaternions,
-                          render_times, None)
+    return _run_recording(_imm_extrapolation_core, (config, jnp.asarray(lookahead)), times,
+                          positions, quaternions, render_times, None)
 
 
 @jit
-def _imm_extrapolation_core(config, t, p, q, r):
+def _imm_extrapolation_core(cfg, t, p, q, r):
     from .imm import imm_filter, imm_predict_pose
 
+    config, lookahead = cfg
     states, _ = imm_filter(config, t, p, q)
-    return _predict_from_latest(t, states, r, lambda s, tau: imm_predict_pose(config, s, tau))
+    return _predict_from_latest(t, states, r, lambda s, tau: imm_predict_pose(config, s, tau),
+                                lookahead)

@@ -1,4 +1,5 @@
-"""Tests for phjax.tracking.baselines: hold, One Euro (JAX and NumPy), linear/slerp and cubic splines."""
+"""Tests for phjax.tracking.baselines: hold, One Euro (JAX and NumPy), linear/slerp and cubic
+splines, the extrapolators' display-time prediction (``lookahead``) against NumPy loops."""
 
 from __future__ import annotations
 
@@ -12,14 +13,21 @@ from scipy.signal import lfilter
 from scipy.spatial.transform import Rotation
 
 from phjax.tracking.baselines import (
+    alpha_beta,
     cubic_spline,
     hold,
+    imm_extrapolation,
+    kalman_extrapolation,
     linear_slerp,
     one_euro,
+    one_euro_extrapolation,
     one_euro_numpy,
     wxyz_to_xyzw,
     xyzw_to_wxyz,
 )
+from phjax.tracking.imm import IMMConfig
+from phjax.tracking.kalman import KalmanConfig, kalman_filter
+from phjax.tracking.models import ConstantVelocity
 from phjax.quaternion import quat_geodesic_distance, quat_to_matrix
 from phjax.motion.resample import interpolate_poses
 
@@ -247,3 +255,156 @@ def test_common_interface_and_sign_flips(name):
     _, out_q2 = map(np.asarray, fn(t, p, q * flip, r))
     ok = np.isfinite(out_q).all(1)
     np.testing.assert_array_less(_angle(out_q[ok], out_q2[ok]), 1e-7)
+
+
+# ---------------------------------------------------------------- display-time prediction
+
+
+def _np_plus_minus(rot: bool):
+    """Independent (scipy) group operations of one channel: ``plus(x, d)``, ``minus(z, x)``."""
+    if not rot:
+        return (lambda x, d: x + d), (lambda z, x: z - x)
+
+    def R(q):
+        return Rotation.from_quat(wxyz_to_xyzw(np.asarray(q)))
+
+    return ((lambda q, d: xyzw_to_wxyz((Rotation.from_rotvec(d) * R(q)).as_quat())),
+            (lambda z, q: (R(z) * R(q).inv()).as_rotvec()))
+
+
+def _np_extrapolate(t, rows, render, lookahead, rot):
+    """``plus(x_i, v_i (tau + lookahead - t_i))`` from the latest valid row ``i`` with
+    ``t_i <= tau`` (rows: per measurement ``(valid, x, v)``), NaN before the first; a loop."""
+    plus, _ = _np_plus_minus(rot)
+    out = np.full((len(render), 4 if rot else 3), np.nan)
+    for j, tau in enumerate(render):
+        done = [i for i in range(len(t)) if t[i] <= tau and rows[i][0]]
+        if done:
+            i = done[-1]
+            out[j] = plus(rows[i][1], rows[i][2] * (tau + lookahead - t[i]))
+    return out
+
+
+def _np_alpha_beta_rows(t, z, alpha, rot):
+    """Alpha-beta filter states after every measurement, a plain loop (Benedict-Bordner beta)."""
+    plus, minus = _np_plus_minus(rot)
+    beta = alpha**2 / (2 - alpha)
+    rows, c, x, v, tp = [], 0, None, None, None
+    for i in range(len(t)):
+        ok = np.all(np.isfinite(z[i]))
+        if ok:
+            zi = z[i] / np.linalg.norm(z[i]) if rot else z[i]
+            if c == 0:
+                x, v = zi, np.zeros(3)
+            elif c == 1:
+                x, v = zi, minus(zi, x) / (t[i] - tp)
+            else:
+                xp = plus(x, v * (t[i] - tp))
+                r = minus(zi, xp)
+                x, v = plus(xp, alpha * r), v + beta * r / (t[i] - tp)
+            c, tp = c + 1, t[i]
+        rows.append((ok, x, v))
+    return rows
+
+
+def _np_one_euro_rows(t, z, min_cutoff, beta, d_cutoff, rot):
+    """One Euro states (estimate and its filtered derivative) after every measurement, a loop."""
+    plus, minus = _np_plus_minus(rot)
+
+    def alpha(te, fc):
+        return 2 * np.pi * fc * te / (2 * np.pi * fc * te + 1)
+
+    rows, x, dx, tp = [], None, None, None
+    for i in range(len(t)):
+        ok = np.all(np.isfinite(z[i]))
+        if ok:
+            zi = z[i] / np.linalg.norm(z[i]) if rot else z[i]
+            if x is None:
+                x, dx = zi, np.zeros(3)
+            else:
+                te = t[i] - tp
+                e = minus(zi, x)
+                dx = dx + alpha(te, d_cutoff) * (e / te - dx)
+                x = plus(x, alpha(te, min_cutoff + beta * np.linalg.norm(dx)) * e)
+            tp = t[i]
+        rows.append((ok, x, dx))
+    return rows
+
+
+def _check_lookahead(out, ref_p, ref_q):
+    out_p, out_q = map(np.asarray, out)
+    np.testing.assert_array_equal(np.isnan(out_p), np.isnan(ref_p))
+    np.testing.assert_allclose(out_p, ref_p, atol=1e-10)
+    ok = np.isfinite(ref_q).all(1)
+    np.testing.assert_array_equal(np.isfinite(out_q).all(1), ok)
+    assert _angle(out_q[ok], ref_q[ok]).max() < 1e-9
+
+
+@pytest.mark.parametrize("lookahead", [0.0, 0.02, 0.05])
+def test_alpha_beta_lookahead_equals_numpy_loop(lookahead):
+    t, p, q, r = _stream(31)
+    out = alpha_beta(t, p, q, r, alpha=0.4, lookahead=lookahead)
+    ref = [_np_extrapolate(t, _np_alpha_beta_rows(t, x, 0.4, rot), r, lookahead, rot)
+           for x, rot in ((p, False), (q, True))]
+    _check_lookahead(out, *ref)
+
+
+@pytest.mark.parametrize("lookahead", [0.0, 0.02, 0.05])
+def test_one_euro_extrapolation_lookahead_equals_numpy_loop(lookahead):
+    t, p, q, r = _stream(32)
+    kw = {"min_cutoff": 0.8, "beta": 3.0, "d_cutoff": 1.5}
+    out = one_euro_extrapolation(t, p, q, r, lookahead=lookahead, **kw)
+    ref = [_np_extrapolate(t, _np_one_euro_rows(t, x, rot=rot, **kw), r, lookahead, rot)
+           for x, rot in ((p, False), (q, True))]
+    _check_lookahead(out, *ref)
+
+
+@pytest.mark.parametrize("lookahead", [0.0, 0.02, 0.05])
+def test_kalman_extrapolation_lookahead_predicts_from_the_latest_filter_state(lookahead):
+    """The filter's states (``kalman_filter``), extrapolated by a NumPy loop to ``tau +
+    lookahead`` from the latest measurement row at or before ``tau``; the single-model IMM
+    extrapolation gives the same."""
+    t, p, q, r = _stream(33)
+    cfg = KalmanConfig(pos_process_noise=0.1, rot_process_noise=1.0)
+    st_ = kalman_filter(cfg, jnp.asarray(t), jnp.asarray(p), jnp.asarray(q))[0]
+    ts, x, qs, ws, init = (np.asarray(a) for a in (st_.t, st_.x, st_.q, st_.w, st_.initialized))
+    pos_rows = [(init[i], x[i, :3], x[i, 3:6]) for i in range(len(t))]
+    rot_rows = [(init[i], qs[i], ws[i]) for i in range(len(t))]
+    # the states' own times (a NaN row predicts the state to its time)
+    ref = [_np_extrapolate(ts, rows, r, lookahead, rot)
+           for rows, rot in ((pos_rows, False), (rot_rows, True))]
+    _check_lookahead(kalman_extrapolation(t, p, q, r, config=cfg, lookahead=lookahead), *ref)
+    icfg = IMMConfig(position_models=(ConstantVelocity.from_q(0.1),),
+                     rotation_models=(ConstantVelocity.from_q(1.0),))
+    _check_lookahead(imm_extrapolation(t, p, q, r, config=icfg, lookahead=lookahead), *ref)
+
+
+@pytest.mark.parametrize("name", ["kalman", "imm", "alpha_beta", "one_euro_x"])
+def test_lookahead_is_causal_and_shifts_the_prediction(name):
+    """Measurements after ``tau`` never change the pose shown at ``tau``, whatever the
+    lookahead; between two frames a lookahead ``L`` at ``tau`` equals no lookahead at
+    ``tau + L`` (the same state, predicted to the same time)."""
+    fn = {"kalman": kalman_extrapolation, "imm": imm_extrapolation,
+          "alpha_beta": lambda *a, **k: alpha_beta(*a, alpha=0.5, **k),
+          "one_euro_x": lambda *a, **k: one_euro_extrapolation(*a, min_cutoff=1.0, beta=1.0, **k)
+          }[name]
+    t, p, q, r = _stream(34, drop=0.0)
+    lookahead = 0.05
+    cut = t[N // 2]
+    p2, q2 = p.copy(), q.copy()
+    p2[t > cut] += 1.0
+    q2[t > cut] = Rotation.random((t > cut).sum(), random_state=0).as_quat()[:, [3, 0, 1, 2]]
+    a = [np.asarray(x) for x in fn(t, p, q, r, lookahead=lookahead)]
+    b = [np.asarray(x) for x in fn(t, p2, q2, r, lookahead=lookahead)]
+    before = r <= cut
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x[before], y[before])
+    # render times with no frame in (tau, tau + L]: same as lookahead 0 at tau + L
+    k0 = np.searchsorted(t, r, side="right")
+    k1 = np.searchsorted(t, r + lookahead, side="right")
+    same = (k0 == k1) & (k0 > 2)
+    assert same.sum() > 5
+    c = [np.asarray(x) for x in fn(t, p, q, r[same] + lookahead)]
+    np.testing.assert_allclose(a[0][same], c[0], atol=1e-10)
+    assert _angle(a[1][same], c[1]).max() < 1e-9
+    assert np.abs(a[0][same] - np.asarray(fn(t, p, q, r[same])[0])).max() > 1e-4  # it moved
