@@ -8,7 +8,8 @@ programs, with no faster code: the tracker update compiled in 14 s of CPU time i
 with the same latency, and large ``hermite_quintic`` batches ran 1.5 x faster
 (``benchmarks/bench_startup.py``, ``benchmarks/README.md``). :func:`jit` is ``jax.jit`` with
 those emitters turned off for the program it compiles; nothing global changes (other programs in
-the process, ``XLA_FLAGS``), and other backends ignore the CPU option.
+the process, ``XLA_FLAGS``). Other backends reject the CPU option, so there it is plain
+``jax.jit`` (on an H200 every jitted entry point failed with "No such compile option" before).
 """
 
 from __future__ import annotations
@@ -33,18 +34,32 @@ COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 class _Jitted:
     """A function jitted twice: with :data:`COMPILER_OPTIONS` when called at top level (it is
     then the program XLA compiles), plainly inside another trace (JAX accepts compiler options
-    only on the outermost ``jit``; the outer program's options apply). Attributes such as
-    ``lower``, ``trace``, ``clear_cache`` are the top-level version's."""
+    only on the outermost ``jit``; the outer program's options apply). The options are XLA:CPU
+    options, which other backends reject: on a GPU or TPU default backend the top-level version
+    is plain ``jax.jit`` too (decided at the first call, so importing phjax does not start a
+    backend). Attributes such as ``lower``, ``trace``, ``clear_cache`` are the top-level
+    version's."""
 
     def __init__(self, fun, kwargs):
-        self._top = jax.jit(fun, compiler_options=COMPILER_OPTIONS, **kwargs)
+        self._fun, self._kwargs = fun, kwargs
         self._nested = jax.jit(fun, **kwargs)
+        self._top_jit = None
         functools.update_wrapper(self, fun)
+
+    @property
+    def _top(self):
+        if self._top_jit is None:
+            options = COMPILER_OPTIONS if jax.default_backend() == "cpu" else None
+            self._top_jit = (jax.jit(self._fun, compiler_options=options, **self._kwargs)
+                             if options else self._nested)
+        return self._top_jit
 
     def __call__(self, *args, **kwargs):
         return (self._top if _top_level() else self._nested)(*args, **kwargs)
 
     def __getattr__(self, name):
+        if name.startswith("__"):
+            raise AttributeError(name)
         return getattr(self._top, name)
 
     def clear_cache(self) -> None:
