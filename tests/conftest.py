@@ -104,6 +104,9 @@ def pytest_configure(config):
         # own variables at start-up and share the same cache
         os.environ["JAX_COMPILATION_CACHE_DIR"] = os.environ[TEST_CACHE]
         os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0.1"
+        # the live source's rendered-head frames (phjax.live._sources.FRAME_CACHE_ENV): a
+        # folder of this run, never the user's ~/.cache (removed with the compilation cache)
+        os.environ["PHJAX_FRAME_CACHE"] = os.path.join(os.environ[TEST_CACHE], "frames")
     import phjax
 
     phjax.enable_compilation_cache(os.environ[TEST_CACHE])
@@ -112,7 +115,8 @@ def pytest_configure(config):
 def pytest_unconfigure(config):
     if getattr(config, "_phjax_cache_owner", False):
         shutil.rmtree(os.environ.pop(TEST_CACHE, ""), ignore_errors=True)
-        for name in ("JAX_COMPILATION_CACHE_DIR", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"):
+        for name in ("JAX_COMPILATION_CACHE_DIR", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
+                     "PHJAX_FRAME_CACHE"):
             os.environ.pop(name, None)
 
 

@@ -2,29 +2,55 @@
 
 from __future__ import annotations
 
+import math
 import signal
 import sys
 import threading
 
+#: the largest --lookahead, ms: beyond it the prediction is mostly guesswork (a head turns
+#: its speed around in ~0.2 s), and no display is that slow
+MAX_LOOKAHEAD_MS = 200.0
+
 
 def cmd_live(args) -> int:
+    ms = args.lookahead
+    if not (math.isfinite(ms) and 0.0 <= ms <= MAX_LOOKAHEAD_MS):
+        print(f"phjax live: error: --lookahead must be between 0 and {MAX_LOOKAHEAD_MS:g} ms "
+              f"(the display's motion-to-photon latency minus what the receiving program "
+              f"predicts itself), got {ms:g}", file=sys.stderr)
+        return 2
+    import equinox as eqx
     import jax
 
     jax.config.update("jax_enable_x64", True)
     jax.config.update("jax_cpu_enable_async_dispatch", False)
-    from ..live import LiveTracker, OutputError, SourceError, open_source
+    from ..live import LiveTracker, OutputError, SourceError, live_tracker_config, open_source
+    from ..live._udp import UdpSource
 
+    tty = sys.stderr.isatty()
+    source = None
     try:
         source = open_source(args.source, model_dir=args.model_dir, ipd=args.ipd, fov=args.fov,
                              monocular=args.monocular, head_size=args.head_size)
+        if isinstance(source, UdpSource):
+            # its lines on malformed datagrams start on a line of their own beside the status
+            source.report = lambda line: print(("\n" + line) if tty and not args.quiet
+                                               else line, file=sys.stderr, flush=True)
+            source.open()  # a port in use fails now, not after the tracker's compilation
+        config = eqx.tree_at(lambda c: c.lookahead, live_tracker_config(source.depth_free),
+                             ms / 1e3)
         lt = LiveTracker(source, args.output or [], rate=args.rate, duration=args.duration,
-                         log=args.log, center=args.center, realtime=args.realtime)
+                         log=args.log, center=args.center, realtime=args.realtime,
+                         config=config)
         lt.start()
     except (SourceError, OutputError, ValueError, FileNotFoundError) as e:
+        if isinstance(source, UdpSource):
+            source.close()
         print(f"phjax live: error: {e}", file=sys.stderr)
         return 2
     outs = ", ".join(o.url for o in lt.outputs) or "none"
     print(f"phjax live: {lt.source.name} -> {outs} at {args.rate:g} Hz"
+          + (f", lookahead {ms:g} ms" if ms else "")
           + (f", log {args.log}" if args.log else ""), file=sys.stderr)
     previous = {}
     if threading.current_thread() is threading.main_thread():
@@ -45,7 +71,6 @@ def cmd_live(args) -> int:
         previous[signal.SIGINT] = signal.signal(signal.SIGINT, on_int)
         if hasattr(signal, "SIGUSR1"):
             previous[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, on_usr1)
-    tty = sys.stderr.isatty()
 
     def status(line: str) -> None:
         if args.quiet:
@@ -69,6 +94,15 @@ def cmd_live(args) -> int:
     print(f"phjax live: sent {s['sent']} poses in {s['elapsed']:.2f} s "
           f"({s['sent'] / max(s['elapsed'], 1e-9):.1f} Hz), {s['frames']} camera frames",
           file=sys.stderr)
+    if isinstance(lt.source, UdpSource):
+        u = lt.source.stats()
+        frame = (f"sender's frame interval {1e3 * u['frame_interval']:.1f} ms, "
+                 f"{u['datagrams_per_frame']:g} datagrams per frame"
+                 if math.isfinite(u["frame_interval"]) else "sender's frame interval unknown")
+        print(f"phjax live: udp: {u['received']} datagrams received: {u['emitted']} poses "
+              f"used, {u['repeated']} repeats of the last pose skipped, {u['superseded']} "
+              f"superseded by a newer one, dropped {lt.source.dropped_text()}; {frame}",
+              file=sys.stderr)
     return 0
 
 
@@ -81,11 +115,13 @@ def add_commands(sub) -> None:
         "--output (and to --log). SOURCE: synthetic[:N[:SEED]] (the rendered test head), an "
         "RGB-D folder (Biwi, TUM RGB-D, color/+depth/), webcam[:INDEX] or a video file "
         "(monocular: opentrack's head-pose network, or --monocular landmarks), "
-        "realsense[:SERIAL] (pyrealsense2), poses:FILE (replay a pose file). Stops at the end "
-        "of the source, after --duration, on Ctrl-C or SIGTERM; SIGUSR1 re-centres. Output "
-        "axes: see docs/live.md.")
+        "realsense[:SERIAL] (pyrealsense2), poses:FILE (replay a pose file), "
+        "udp://[HOST]:PORT (another tracker's opentrack UDP datagrams: x y z cm, yaw pitch "
+        "roll deg; HOST default 0.0.0.0; add ?noise=monocular for a webcam tracker). Stops at "
+        "the end of the source, after --duration, on Ctrl-C or SIGTERM; SIGUSR1 re-centres. "
+        "Axes: see docs/live.md.")
     p.add_argument("source", help="synthetic[:N[:SEED]] | RGB-D folder | webcam[:INDEX] | "
-                   "video file | realsense[:SERIAL] | poses:FILE")
+                   "video file | realsense[:SERIAL] | poses:FILE | udp://[HOST]:PORT")
     p.add_argument("--output", "-o", action="append", metavar="URL",
                    help="opentrack://HOST[:PORT] (default port 4242; 48-byte datagrams of six "
                    "float64: x y z cm, yaw pitch roll deg) or osc://HOST[:PORT] (default 9000; "
@@ -94,6 +130,12 @@ def add_commands(sub) -> None:
     p.add_argument("--duration", type=float, default=None,
                    help="stop after this many seconds (default: end of the source / Ctrl-C)")
     p.add_argument("--log", default=None, help="write every sent pose to this TUM file")
+    p.add_argument("--lookahead", type=float, default=0.0, metavar="MS",
+                   help="display-time prediction, ms (default 0, at most 200): send the pose "
+                   "predicted for MS after the render time. Set it to the display's "
+                   "motion-to-photon latency minus what the receiving program already predicts "
+                   "(a VR runtime that predicts to its own display time: 0; a game that draws "
+                   "the pose as received: its latency, typically 20-50)")
     p.add_argument("--center", action="store_true",
                    help="the first pose becomes the origin (SIGUSR1 re-centres at any time)")
     p.add_argument("--monocular", choices=("net", "landmarks"), default="net",

@@ -21,7 +21,8 @@ class RealClock:
     ``sleep_until`` waits on the stop event until ``spin`` seconds before the deadline and then
     polls the clock (yielding the GIL between polls), which keeps the wake-up error near the
     clock's resolution instead of the scheduler's timer slack (~0.1 ms) without busy-waiting
-    for long.
+    for long. The clock is system-wide (``CLOCK_MONOTONIC`` on Linux), so a worker process's
+    capture times (:class:`phjax.live.WorkerSource`) are on the same clock.
 
     Arguments:
         spin: seconds before a deadline at which the sleep switches to polling (default 0.4 ms).

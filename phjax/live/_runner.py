@@ -2,14 +2,25 @@
 
 Two threads share one :class:`phjax.tracking.TrackerStream`:
 
-* **capture**: the source's frames (camera rate), head pose, then a stream update;
+* **capture**: the source's measurements (camera rate), then a stream update. A source with
+  a vision front-end (frames, face detection, head pose) runs by default in a worker process
+  (:class:`phjax.live.WorkerSource`), and the capture thread only waits for its measurements
+  in a blocking read that releases Python's GIL: the front-end's work (its CPU time, its
+  Python sections, its garbage collections) cannot hold the render thread;
 * **render**: at absolute deadlines ``t_k = t0 + k / rate`` (no drift: a late wake-up does not
   delay the next deadline; deadlines missed by a whole period are skipped and counted) it
-  samples the stream at ``t_k`` and sends the pose to every output.
+  samples the stream at ``t_k`` and sends the pose to every output. The rate is at most
+  :data:`MAX_RATE`.
 
 The threads only exchange the stream's state (replaced atomically by an update) and a
 few numbers, so a slow or failed frame is a late or missing measurement and never stalls the
 render loop.
+
+Timing figures (:meth:`LiveTracker.stats`, :meth:`LiveTracker.status_line`): the
+*measurement age* is the time from a frame's capture to the stream update that applies it
+(the front-end's latency); the *sent age* is the time from the capture of the newest applied
+frame to the sending of a pose (measurement age plus the time since the update);
+``Sample.age`` is the pose's render time minus that capture time.
 
 Late measurements. A camera frame taken at ``t_c`` reaches the tracker at ``t_a > t_c``
 (rendering, face detection, pose estimation). :meth:`LiveStream.update_late` runs the Kalman
@@ -48,6 +59,7 @@ sample after :meth:`LiveTracker.center` becomes the origin: orientation ``q_c^-1
 
 from __future__ import annotations
 
+import gc
 import math
 import os
 import queue
@@ -76,9 +88,15 @@ from ..tracking.tracker import (
 from ._clock import RealClock, VirtualClock
 from ._outputs import Output, TumLog, open_output
 from ._sources import Measurement, Source, open_source
+from ._worker import WorkerSource
 
-__all__ = ["MIN_CONFIDENCE", "LiveStream", "LiveTracker", "Sample", "live_tracker_config"]
+__all__ = ["MAX_RATE", "MIN_CONFIDENCE", "LiveStream", "LiveTracker", "Sample",
+           "live_tracker_config"]
 
+#: the highest render rate, Hz: one pose per millisecond. A shorter period is below the
+#: render loop's own wake-up and send time on a desktop OS (it would miss most deadlines)
+#: and above any display's refresh rate.
+MAX_RATE = 1000.0
 #: the smallest confidence a measurement is given (its noise is at most 10 times the config's)
 MIN_CONFIDENCE = 0.01
 #: the config fields scaled by a measurement's noise scale (also inside an IMM config)
@@ -221,7 +239,7 @@ class LiveTracker:
         source: a :class:`phjax.live.Source` or a ``phjax live`` SOURCE string.
         outputs: :class:`phjax.live.Output` objects or URLs (``opentrack://HOST:PORT``,
             ``osc://HOST:PORT``).
-        rate: render rate, Hz.
+        rate: render rate, Hz, in ``(0, MAX_RATE]`` (:data:`MAX_RATE`: 1000).
         duration: stop after this many seconds (default: when the source ends, after the
             stream has come to rest, or on :meth:`stop`).
         log: path of a TUM log of every sent pose.
@@ -231,13 +249,23 @@ class LiveTracker:
         clock: :class:`RealClock` (default) or :class:`VirtualClock`.
         callback: called with each :class:`Sample` in the render thread (keep it short).
         model_dir, ipd, fov: passed to :func:`phjax.live.open_source` for a string source.
+        worker: run a string source's vision front-end in a worker process
+            (:class:`phjax.live.WorkerSource`; always off with a :class:`VirtualClock`).
         switch_interval: Python's thread switch interval while running, s (default 0.5 ms:
             the render thread gets the GIL within that time of its deadline; restored at
-            :meth:`stop`); ``None`` leaves it alone.
-        render_nice, capture_nice: niceness increments of the two threads (Linux, best
-            effort: raising the render thread's priority needs ``CAP_SYS_NICE`` and is skipped
-            without it; ``None``: unchanged). By default the render thread gets a little more
-            of a busy CPU than the capture thread's front-end.
+            :meth:`stop`); ``None`` leaves it alone. On the real clock the objects alive at
+            the start are also exempted from Python's cyclic garbage collector for the run
+            (``gc.freeze``, undone at :meth:`stop`): a full collection of the ~300 000
+            objects of a process with JAX, phjax and a front-end loaded took 140 ms, a stall
+            of every thread; afterwards it scans only the objects made during the run.
+        render_nice, capture_nice: niceness increments (Linux, best effort: raising a
+            priority needs ``CAP_SYS_NICE`` and is skipped without it; ``None``: unchanged).
+            ``render_nice`` is the render thread's, and the capture thread's when the source
+            does no heavy work in this process (a worker source, a pose replay): a thread
+            that holds the GIL must not wait behind other programs while the render thread
+            waits for the GIL. ``capture_nice`` is the front-end's: the worker process's, or
+            the capture thread's when the front-end runs in it. By default the render loop
+            gets a little more of a busy CPU than the front-end.
         realtime: run the render thread with the real-time policy ``SCHED_FIFO`` (Linux,
             best effort: needs ``CAP_SYS_NICE`` or an ``rtprio`` limit; ``realtime_active``
             says whether it took effect). On a busy CPU this keeps the render deadlines when
@@ -260,13 +288,19 @@ class LiveTracker:
                  = None, model_dir=None, ipd: float | None = None, fov: float = 60.0,
                  switch_interval: float | None = 5e-4, linger: float = 0.5,
                  render_nice: int | None = -5, capture_nice: int | None = 5,
-                 realtime: bool = False):
-        if not (math.isfinite(rate) and rate > 0):
-            raise ValueError(f"rate must be a positive number, got {rate}")
+                 realtime: bool = False, worker: bool = True):
+        rate = float(rate)
+        if not (math.isfinite(rate) and 0 < rate <= MAX_RATE):
+            raise ValueError(f"rate must be in (0, {MAX_RATE:g}] Hz, got {rate:g}: one pose is "
+                             "sent per period, and a period under 1 ms is shorter than the "
+                             "render loop's own wake-up and send time")
         if duration is not None and not duration > 0:
             raise ValueError(f"duration must be positive, got {duration}")
-        self.rate, self.duration = float(rate), duration
+        self.rate, self.duration = rate, duration
         self.clock = RealClock() if clock is None else clock
+        if self.clock.virtual and isinstance(source, WorkerSource):
+            raise ValueError("a worker source runs in real time: use open_source(..., "
+                             "worker=False) with a VirtualClock")
         self.callback = callback
         self.adaptive = adaptive
         self.linger = float(linger)
@@ -279,7 +313,8 @@ class LiveTracker:
         self.source = None
         try:
             self.source = source if isinstance(source, Source) else open_source(
-                source, model_dir=model_dir, ipd=ipd, fov=fov)
+                source, model_dir=model_dir, ipd=ipd, fov=fov,
+                worker=worker and not self.clock.virtual)
             for out in outputs:
                 self._outputs.append(out if isinstance(out, Output) else open_output(out))
             if log is not None:
@@ -301,17 +336,24 @@ class LiveTracker:
         self._queues: list[queue.Queue] = []
         self._started = False
         self._closed = False
+        self._gc_frozen = False
         self.error: BaseException | None = None
         # statistics (written by one thread each)
         self.status_counts: Counter = Counter()
         self.frames = 0
+        self.dropped = 0
+        self.no_pose: Counter = Counter()  # frames without a pose, by front-end status
         self.sent = 0
         self.missed_deadlines = 0
         self.waiting = 0
         self.held = 0
         self.intervals = _Ring()
         self.ages = _Ring()
+        self.applied_ages = _Ring()
+        self.sent_ages = _Ring()
+        self.work_times = _Ring(1024)
         self.frame_times = _Ring(256)
+        self._status_prev = None
         self.latest: Sample | None = None
         self._last_capture = None
         self._last_ok_t = None
@@ -325,19 +367,29 @@ class LiveTracker:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> LiveTracker:
-        """Open the source (warm-up included), compile the stream and start both threads."""
+        """Open the source (warm-up included), compile the stream and start both threads.
+
+        A worker source is launched first, so that its warm-up runs while the stream
+        compiles."""
         if self._started:
             raise RuntimeError("a LiveTracker can be started once")
         self._started = True
         try:
-            self.source.open()
+            if isinstance(self.source, WorkerSource):
+                self.source.nice = self.capture_nice
+                self.source.launch()
             self._warm_up()
+            self.source.open()
         except BaseException:
             self._cleanup()
             raise
         if self.switch_interval is not None:
             self._old_switch = sys.getswitchinterval()
             sys.setswitchinterval(self.switch_interval)
+        if not self.clock.virtual:
+            gc.collect()
+            gc.freeze()
+            self._gc_frozen = True
         self.t0 = self.clock.now()
         if self.duration is not None:
             self._end_time = self.t0 + float(self.duration)
@@ -390,6 +442,9 @@ class LiveTracker:
             if getattr(self, "_old_switch", None) is not None:
                 sys.setswitchinterval(self._old_switch)
                 self._old_switch = None
+            if self._gc_frozen:
+                gc.unfreeze()
+                self._gc_frozen = False
             for q in self._queues:
                 try:
                     q.put_nowait(None)
@@ -427,7 +482,8 @@ class LiveTracker:
 
     # ------------------------------------------------------------------ capture thread
     def _capture_main(self) -> None:
-        _renice(self.capture_nice)
+        in_process = self.source.front_end and not isinstance(self.source, WorkerSource)
+        _renice(self.capture_nice if in_process else self.render_nice)
         try:
             self.source.run(self.clock, self.t0, self._stop, self._on_measurement)
         except BaseException as e:  # noqa: BLE001 - reported by run() / the CLI
@@ -441,9 +497,13 @@ class LiveTracker:
     def _on_measurement(self, m: Measurement) -> None:
         now = self.clock.now()
         self.frames += 1
+        self.dropped += int(m.dropped)
         self.status_counts[m.status] += 1
         self.frame_times.add(m.t)
+        self.work_times.add(m.work)
         ok = m.ok
+        if not ok:
+            self.no_pose[m.status if m.status != "OK" else "no pose"] += 1
         if ok and self.adaptive:
             self._adapt(m.t)
         scale = 1.0 / math.sqrt(max(min(float(m.confidence), 1.0), MIN_CONFIDENCE)) if ok \
@@ -453,6 +513,7 @@ class LiveTracker:
                                 np.asarray(m.quaternion, np.float64), scale)
         if ok:
             self._last_capture = m.t
+            self.applied_ages.add(self.clock.now() - m.t)
 
     def _adapt(self, t: float) -> None:
         if self._last_ok_t is not None:
@@ -533,8 +594,10 @@ class LiveTracker:
         if self._last_send is not None:
             self.intervals.add(now - self._last_send)
         self._last_send = now
-        age = t_k - self._last_capture if self._last_capture is not None else float("nan")
+        capture = self._last_capture
+        age = t_k - capture if capture is not None else float("nan")
         self.ages.add(age)
+        self.sent_ages.add(now - capture if capture is not None else float("nan"))
         self.sent += 1
         s = Sample(ts, p, q, age)
         self.latest = s
@@ -593,9 +656,25 @@ class LiveTracker:
 
     # ------------------------------------------------------------------ statistics
     def stats(self) -> dict:
-        """Counts and timing statistics so far (recent window for the percentiles)."""
+        """Counts so far and timing statistics over a recent window (the last 8192 samples and
+        measurements, the last 256 frames for the camera rate, the last 1024 front-end times).
+
+        Keys: ``elapsed`` (s), ``frames`` (measurements received), ``status`` (their counts
+        by front-end status), ``dropped`` (camera frames lost before reaching the front-end),
+        ``no_pose`` (frames without a pose, by status), ``lost`` (``dropped`` plus the
+        ``no_pose`` counts), ``camera_fps``, ``sent``, ``missed_deadlines``, ``waiting``
+        (deadlines before the first pose), ``held`` (a non-finite sample replaced by the last
+        good one), ``render_hz``, ``interval_p50`` / ``_p99`` / ``_max`` (between sends, s),
+        ``age_p50`` / ``_p99`` (``Sample.age``), ``applied_age_p50`` / ``_p99`` (capture to
+        stream update), ``sent_age_p50`` / ``_p99`` (capture to send), ``front_end_p50`` (the
+        front-end's time per frame; NaN if the source does not say), ``horizon`` and
+        ``lookahead`` (s, of the config in use).
+        """
         iv = self.intervals.values()
         ages = self.ages.values()
+        applied = self.applied_ages.values()
+        sent_ages = self.sent_ages.values()
+        work = self.work_times.values()
         ft = self.frame_times.values()
         end = self._t_render_end if self._t_render_end is not None else self.clock.now()
         elapsed = (end - self.t0) if self.t0 is not None else 0.0
@@ -605,6 +684,9 @@ class LiveTracker:
             "elapsed": elapsed,
             "frames": self.frames,
             "status": dict(self.status_counts),
+            "dropped": self.dropped,
+            "no_pose": dict(self.no_pose),
+            "lost": self.dropped + sum(self.no_pose.values()),
             "camera_fps": float(cam),
             "sent": self.sent,
             "missed_deadlines": self.missed_deadlines,
@@ -616,19 +698,45 @@ class LiveTracker:
             "interval_max": float(iv.max()) if iv.size else float("nan"),
             "age_p50": _percentile(ages, 50),
             "age_p99": _percentile(ages, 99),
+            "applied_age_p50": _percentile(applied, 50),
+            "applied_age_p99": _percentile(applied, 99),
+            "sent_age_p50": _percentile(sent_ages, 50),
+            "sent_age_p99": _percentile(sent_ages, 99),
+            "front_end_p50": _percentile(work, 50),
             "horizon": float(self._config_used.horizon),
+            "lookahead": float(self._config_used.lookahead),
         }
 
     def status_line(self) -> str:
-        """One line: camera FPS, pose-status counts, render rate and jitter, sample age."""
+        """One line of what a user watches: input frames per second and output poses per
+        second since the previous call (or the start), lost frames (total, by reason), the
+        measurement and sent ages (medians, recent window), the render interval's 99th
+        percentile and missed deadlines, and the lookahead in use::
+
+            t   12.0 s | in 29.9 fps, lost 4 (late 1, NO_FACE 3) | out 120.0 Hz, p99 8.9 ms,
+            missed 0 | age 24 ms, sent 41 ms | lookahead 20 ms
+
+        (one line; wrapped here).
+        """
         s = self.stats()
-        counts = " ".join(f"{k} {v}" for k, v in sorted(s["status"].items()))
-        period = 1.0 / self.rate
-        return (f"t {s['elapsed']:6.1f} s | camera {s['camera_fps']:5.1f} fps | poses: "
-                f"{counts or '-'} | render {s['render_hz']:6.1f} Hz, jitter p50 "
-                f"{1e3 * abs(s['interval_p50'] - period):.2f} ms p99 "
-                f"{1e3 * abs(s['interval_p99'] - period):.2f} ms, missed "
-                f"{s['missed_deadlines']} | age p50 {1e3 * s['age_p50']:.0f} ms")
+        now = self._t_render_end if self._t_render_end is not None else self.clock.now()
+        prev = self._status_prev if self._status_prev is not None else (
+            self.t0 if self.t0 is not None else now, 0, 0)
+        span = now - prev[0]
+        fps = (self.frames - prev[1]) / span if span > 0 else float("nan")
+        hz = (self.sent - prev[2]) / span if span > 0 else float("nan")
+        self._status_prev = (now, self.frames, self.sent)
+        reasons = ([f"late {s['dropped']}"] if s["dropped"] else []) + [
+            f"{k} {v}" for k, v in sorted(s["no_pose"].items())]
+        lost = f"lost {s['lost']}" + (f" ({', '.join(reasons)})" if reasons else "")
+        return (f"t {s['elapsed']:6.1f} s | in {fps:5.1f} fps, {lost} | out {hz:6.1f} Hz, "
+                f"p99 {_ms(s['interval_p99'], 1)}, missed {s['missed_deadlines']} | "
+                f"age {_ms(s['applied_age_p50'])}, sent {_ms(s['sent_age_p50'])} | "
+                f"lookahead {1e3 * s['lookahead']:.0f} ms")
+
+
+def _ms(seconds: float, digits: int = 0) -> str:
+    return f"{1e3 * seconds:.{digits}f} ms" if math.isfinite(seconds) else "-"
 
 
 def _renice(increment: int | None) -> None:

@@ -5,12 +5,10 @@ capture time on the runner's clock and the head pose in the camera frame (NaN wh
 gave none). :func:`open_source` parses the ``SOURCE`` argument of ``phjax live``:
 
 ``synthetic[:N[:SEED]]``
-    the rendered synthetic head (:func:`phjax.vision.open_rgbd`), paced at its frame rate and
-    run through the RGB-D front-end (:class:`phjax.vision.HeadPoseEstimator`). Rendering is
-    treated as the camera's work (the frame due when rendering ends is rendered, then
-    delivered at its timestamp), but it still takes CPU time (~0.1-0.2 s a frame), so on a
-    small machine the front-end sees only a few frames per second: the others are skipped,
-    as late frames of a real camera would be.
+    the rendered synthetic head (:func:`phjax.vision.open_rgbd`) at 30 Hz through the RGB-D
+    front-end (:class:`phjax.vision.HeadPoseEstimator`). Rendering a frame takes 0.1-0.4 s of
+    CPU, so :class:`SyntheticSource` renders the frames once, before the first run that needs
+    them, into a frame cache (:func:`frame_cache_dir`) and plays them back like a camera.
 an RGB-D recording
     any folder :func:`phjax.vision.open_rgbd` accepts (Biwi, TUM RGB-D, colour + depth),
     replayed at its own timestamps through the same front-end.
@@ -25,16 +23,27 @@ an RGB-D recording
 ``poses:FILE``
     a pose file (any format :func:`phjax.io.read_trajectory` reads) replayed at its
     timestamps, no vision.
+``udp://[HOST]:PORT``
+    another tracker's poses as opentrack UDP datagrams (:class:`phjax.live.UdpSource`),
+    time-stamped on arrival, no vision.
 
 Late frames are never queued: a source that falls behind its clock skips to the newest frame
-due, so the tracker receives late or missing measurements, never a backlog.
+due, so the tracker receives late or missing measurements, never a backlog (the frames lost
+that way are counted in :attr:`Measurement.dropped`).
+
+The sources with a vision front-end (:attr:`Source.front_end`) run, by default, in a worker
+process (:class:`phjax.live.WorkerSource`, :mod:`phjax.live._worker`), where the front-end
+cannot hold the render loop.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import os
+import sys
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,7 +57,9 @@ __all__ = [
     "RealSenseSource",
     "Source",
     "SourceError",
+    "SyntheticSource",
     "VideoSource",
+    "frame_cache_dir",
     "open_source",
 ]
 
@@ -69,6 +80,9 @@ class Measurement:
         confidence: weight of the pose in ``(0, 1]`` (the monocular network's uncertainty,
             :class:`phjax.vision.monocular.MonocularResult`); the runner divides the filter's
             measurement noise by its square root for this measurement.
+        dropped: camera frames lost just before this one (late: the front-end was still busy
+            or the frame could not be read in time); counted in the runner's lost frames.
+        work: seconds the front-end spent on this frame (NaN if not measured).
     """
 
     t: float
@@ -76,6 +90,8 @@ class Measurement:
     quaternion: np.ndarray
     status: str = "OK"
     confidence: float = 1.0
+    dropped: int = 0
+    work: float = float("nan")
 
     @property
     def ok(self) -> bool:
@@ -92,11 +108,14 @@ class Source:
         name: a description.
         depth_free: the poses come from colour alone (larger measurement noise).
         rate: nominal frame rate, Hz (``None`` if unknown).
+        front_end: each frame goes through a vision front-end (CPU-heavy work that
+            :func:`open_source` runs in a worker process by default).
     """
 
     name = ""
     depth_free = False
     rate: float | None = None
+    front_end = False
 
     def open(self) -> None:
         """Acquire the device / files and warm up (compile) the front-end."""
@@ -165,7 +184,16 @@ class RGBDReplaySource(Source):
         sequence: the frames (e.g. ``phjax.vision.open_rgbd("synthetic:240")``).
         model_dir: YuNet model cache (see :mod:`phjax.vision.face_detection`).
         estimator: a ready estimator (default: one with the default config).
+
+    On the real clock a camera thread reads each frame (the camera's work) and hands it over
+    at its timestamp through a one-frame buffer; the front-end takes the newest frame whenever
+    it is free, so reading frame ``i + 1`` overlaps the pose of frame ``i``, and a frame that
+    arrives while the front-end is busy replaces the waiting one (counted in
+    :attr:`Measurement.dropped`): never a backlog. On a :class:`~phjax.live.VirtualClock`
+    reading and processing take no time and one thread does both.
     """
+
+    front_end = True
 
     def __init__(self, sequence, *, model_dir=None, estimator=None, name: str | None = None):
         self.sequence = sequence
@@ -190,25 +218,114 @@ class RGBDReplaySource(Source):
             self.estimator.process_frame(self.sequence[i])
         self.estimator.reset()
 
-    def run(self, clock, t0, stop, emit) -> None:
-        # Loading a frame (rendering the synthetic head, reading files) is the camera's work,
-        # not the front-end's: the frame that will be due when loading ends is loaded, then
-        # delivered at its timestamp, so the measured latency is the front-end's.
+    def _times(self) -> np.ndarray:
         rel = np.asarray(self.sequence.timestamps, np.float64)
-        rel = rel - rel[0]
+        return rel - rel[0]
+
+    def _process(self, clock, t_capture: float, frame, dropped: int) -> Measurement:
+        t_work = clock.now()
+        r = self.estimator.process_frame(frame)
+        return Measurement(t_capture, r.position, r.quaternion, r.status.name,
+                           dropped=dropped, work=clock.now() - t_work)
+
+    def run(self, clock, t0, stop, emit) -> None:
+        if clock.virtual:
+            self._run_sequential(clock, t0, stop, emit)
+            return
+        box = _NewestFrame()
+        quit_ = threading.Event()
+        camera = threading.Thread(target=self._camera, args=(clock, t0, quit_, box),
+                                  name="phjax-live-camera", daemon=True)
+        camera.start()
+        try:
+            while not stop.is_set():
+                got = box.take(stop)
+                if got is None:
+                    break
+                (t_capture, frame), dropped = got
+                emit(self._process(clock, t_capture, frame, dropped))
+        finally:
+            quit_.set()
+            camera.join()
+        if box.error is not None:
+            raise box.error
+
+    def _camera(self, clock, t0, quit_: threading.Event, box: _NewestFrame) -> None:
+        """Read each frame (the one due when reading ends: late frames are skipped) and hand
+        it over at its timestamp."""
+        rel = self._times()
+        n, i, load_est = rel.shape[0], 0, 0.0
+        try:
+            while i < n and not quit_.is_set():
+                t_start = clock.now()
+                due = int(np.searchsorted(rel, t_start - t0 + load_est, side="right")) - 1
+                skipped = max(0, min(due, n - 1) - i)
+                i += skipped
+                frame = self.sequence[i]
+                load_est = 0.7 * load_est + 0.3 * (clock.now() - t_start)
+                clock.sleep_until(t0 + rel[i], quit_)
+                if quit_.is_set():
+                    break
+                box.put((t0 + rel[i], frame), skipped)
+                i += 1
+        except BaseException as e:  # noqa: BLE001 - raised by run() in the front-end thread
+            box.close(e)
+        else:
+            box.close()
+
+    def _run_sequential(self, clock, t0, stop, emit) -> None:
+        # Loading a frame is the camera's work, not the front-end's: the frame that will be
+        # due when loading ends is loaded, then delivered at its timestamp.
+        rel = self._times()
         n, i, load_est = rel.shape[0], 0, 0.0
         while i < n and not stop.is_set():
             t_start = clock.now()
             due = int(np.searchsorted(rel, t_start - t0 + load_est, side="right")) - 1
-            i = max(i, min(due, n - 1))
+            skipped = max(0, min(due, n - 1) - i)
+            i += skipped
             frame = self.sequence[i]
             load_est = 0.7 * load_est + 0.3 * (clock.now() - t_start)
             clock.sleep_until(t0 + rel[i], stop)
             if stop.is_set():
                 return
-            r = self.estimator.process_frame(frame)
-            emit(Measurement(t0 + rel[i], r.position, r.quaternion, r.status.name))
+            emit(self._process(clock, t0 + rel[i], frame, skipped))
             i += 1
+
+
+class _NewestFrame:
+    """A camera's one-frame buffer between the camera thread and the front-end: a frame that
+    arrives before the front-end took the previous one replaces it (that one is dropped)."""
+
+    def __init__(self):
+        self._cv = threading.Condition()
+        self._item = None
+        self._dropped = 0
+        self._closed = False
+        self.error: BaseException | None = None
+
+    def put(self, item, skipped: int = 0) -> None:
+        with self._cv:
+            self._dropped += skipped + (self._item is not None)
+            self._item = item
+            self._cv.notify()
+
+    def close(self, error: BaseException | None = None) -> None:
+        with self._cv:
+            self._closed = True
+            self.error = error
+            self._cv.notify()
+
+    def take(self, stop: threading.Event):
+        """``(item, frames dropped since the last take)``, or ``None`` once the camera has
+        ended (and its last frame was taken) or ``stop`` is set."""
+        with self._cv:
+            while self._item is None and not self._closed and not stop.is_set():
+                self._cv.wait(0.05)
+            if self._item is None or stop.is_set():
+                return None
+            got = (self._item, self._dropped)
+            self._item, self._dropped = None, 0
+            return got
 
 
 def _with_models(make):
@@ -220,6 +337,206 @@ def _with_models(make):
     except ModelNotFoundError as e:
         raise SourceError(str(e).splitlines()[0] + " (set --model-dir or $PHJAX_MODEL_DIR)"
                           ) from None
+
+
+# ------------------------------------------------------------------------------- synthetic
+#: environment variable: the folder of the synthetic head's rendered frames, or ``off``
+FRAME_CACHE_ENV = "PHJAX_FRAME_CACHE"
+#: depth resolution of the frame cache, m (the simulated sensor's own steps are >= 0.46 mm)
+CACHE_DEPTH_STEP = 1e-4
+
+
+def frame_cache_dir() -> Path | None:
+    """The folder of the rendered synthetic head's frames: ``$PHJAX_FRAME_CACHE``, else
+    ``$XDG_CACHE_HOME/phjax/frames``, else ``~/.cache/phjax/frames``; ``None`` when
+    ``$PHJAX_FRAME_CACHE`` is ``off`` (or ``0``, ``no``, ``false``): the frames are then
+    rendered for each run and kept in memory."""
+    value = os.environ.get(FRAME_CACHE_ENV, "").strip()
+    if value.lower() in ("off", "0", "no", "false"):
+        return None
+    if value:
+        return Path(value).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path("~/.cache").expanduser())
+    return Path(base) / "phjax" / "frames"
+
+
+def _renderer_key() -> str:
+    """A digest of the code a synthetic frame comes from: the renderer and the head motion
+    (:mod:`phjax.vision.synthetic_rgbd`, :mod:`phjax.motion.simulate`,
+    :func:`phjax.vision.rgbd_io.synthetic_rgbd`), JAX's and NumPy's versions (a change renders
+    the frames anew)."""
+    import hashlib
+    import inspect
+
+    import jax
+
+    from ..motion import simulate
+    from ..vision import rgbd_io, synthetic_rgbd
+
+    h = hashlib.sha256()
+    for mod in (synthetic_rgbd, simulate):
+        h.update(Path(mod.__file__).read_bytes())
+    h.update(inspect.getsource(rgbd_io.synthetic_rgbd).encode())
+    h.update(f"jax {jax.__version__} numpy {np.__version__}".encode())
+    return h.hexdigest()[:16]
+
+
+def _frame_keys(seq) -> list[str]:
+    """One digest per frame of a :class:`phjax.vision.SyntheticRGBDSequence`: of everything
+    the frame is rendered from (its index and seed, which draw its noise; its head pose; the
+    camera, image and window size, wall, noise settings). Frames with equal keys are equal,
+    whatever the sequence's length (the motion of a seed depends on the length: sequences
+    of different lengths share only some frames)."""
+    import hashlib
+
+    k = seq.intrinsics
+    base = hashlib.sha256(repr((seq.seed, seq.width, seq.height, seq.crop, seq.depth_noise,
+                                seq.color_noise, float(k.fx), float(k.fy), float(k.cx),
+                                float(k.cy))).encode())
+    base.update(np.asarray(seq.wall, np.float64).tobytes())
+    keys = []
+    for i in range(len(seq)):
+        h = base.copy()
+        h.update(i.to_bytes(8, "little"))
+        h.update(np.asarray(seq.head_positions[i], np.float64).tobytes())
+        h.update(np.asarray(seq.head_quaternions[i], np.float64).tobytes())
+        keys.append(h.hexdigest()[:24])
+    return keys
+
+
+class SyntheticSource(RGBDReplaySource):
+    """The rendered synthetic head (``synthetic[:N[:SEED]]``) at 30 Hz through the RGB-D
+    front-end, from frames rendered before the run.
+
+    Rendering a frame costs 0.1-0.4 s of CPU time (ray casting,
+    :mod:`phjax.vision.synthetic_rgbd`): rendered during the run, only a few frames per
+    second would reach the front-end. :meth:`open` therefore renders the frames that are not
+    in the frame cache yet (on all CPU cores, one line on ``report`` before and after) and
+    stores them (:func:`frame_cache_dir`: 8-bit BGR colour and depth in steps of
+    :data:`CACHE_DEPTH_STEP`, 1.5 MB a frame at 640 x 480, one file per frame named by a
+    digest of what it is rendered from, so a frame is rendered once for every ``N`` that
+    shows it, and a change of the renderer's code or of JAX renders it anew). Playing them
+    back reads a frame in about a millisecond, as a camera delivers it. Delete the folder to
+    free the space.
+
+    Arguments:
+        num_frames, seed: as :func:`phjax.vision.open_rgbd` ``("synthetic:N:SEED")``.
+        model_dir: YuNet model cache.
+        estimator: a ready estimator (default: one with the default config).
+        cache: the cache folder (``True``, default: :func:`frame_cache_dir`); ``None`` or
+            ``False``: keep the rendered frames in memory for this run only.
+        threads: rendering threads (default: one per CPU core).
+        report: called with the one-line messages about rendering (default: print them on
+            stderr).
+    """
+
+    def __init__(self, num_frames: int = 90, seed: int = 0, *, model_dir=None,
+                 estimator=None, cache: str | os.PathLike | bool | None = True,
+                 threads: int | None = None,
+                 report: Callable[[str], None] | None = None):
+        if int(num_frames) < 1:
+            raise SourceError(f"synthetic: need at least 1 frame, got {num_frames}")
+        self.num_frames, self.seed = int(num_frames), int(seed)
+        self.name = f"synthetic head ({self.num_frames} frames, seed {self.seed})"
+        self.model_dir = model_dir
+        self.estimator = estimator
+        self.sequence = None
+        self.rate = 30.0
+        self.cache = frame_cache_dir() if cache is True else (
+            Path(cache) if cache not in (None, False) else None)
+        self.threads = threads
+        self.report = report if report is not None else (
+            lambda line: print(line, file=sys.stderr, flush=True))
+        self._memory: dict[str, bytes] = {}
+        self.rendered = 0  # frames rendered by the last open() (the others came from the cache)
+
+    @property
+    def folder(self) -> Path | None:
+        """The folder of this renderer's frames in the cache (``None`` without a cache)."""
+        if self.cache is None:
+            return None
+        return self.cache / f"synthetic-{_renderer_key()}"
+
+    def open(self) -> None:
+        from ..vision.rgbd_io import RGBDSequence, synthetic_rgbd
+        from ..vision.synthetic_rgbd import synthetic_rgbd_sequence
+
+        rendered = synthetic_rgbd(self.num_frames, self.seed)  # frames rendered on access
+        self._keys = _frame_keys(synthetic_rgbd_sequence(self.num_frames, seed=self.seed))
+        intr = rendered.intrinsics
+        self._shape = (int(intr.height), int(intr.width))
+        folder = self.folder
+        if folder is not None:
+            folder.mkdir(parents=True, exist_ok=True)
+        missing = [i for i in range(self.num_frames) if self._read(i) is None]
+        self.rendered = len(missing)
+        if missing:
+            self._render(rendered, missing)
+        stamps = np.asarray(rendered.timestamps, np.float64)
+        self.sequence = RGBDSequence(
+            [functools.partial(self._load, i, float(stamps[i]), intr)
+             for i in range(self.num_frames)], stamps, intr, rendered.name,
+            rendered.ground_truth, rendered.ground_truth_kind)
+        super().open()
+
+    def _path(self, i: int) -> Path:
+        return self.folder / f"{self._keys[i]}.bin"
+
+    def _read(self, i: int) -> bytes | np.ndarray | None:
+        if self.cache is None:
+            return self._memory.get(self._keys[i])
+        h, w = self._shape
+        path = self._path(i)
+        try:
+            if path.stat().st_size != h * w * 5:
+                return None
+            return np.fromfile(path, np.uint8)
+        except OSError:
+            return None
+
+    def _store(self, i: int, frame) -> None:
+        depth = np.nan_to_num(np.asarray(frame.depth, np.float64), nan=0.0)
+        steps = np.round(depth / CACHE_DEPTH_STEP)
+        steps = np.where((steps >= 0) & (steps <= 65535), steps, 0).astype("<u2")
+        data = np.ascontiguousarray(frame.color, np.uint8).tobytes() + steps.tobytes()
+        if self.cache is None:
+            self._memory[self._keys[i]] = data
+            return
+        path = self._path(i)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+        tmp.write_bytes(data)
+        os.replace(tmp, path)  # atomic: a reader never sees half a frame
+
+    def _render(self, rendered, missing: list[int]) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        where = f"into {self.folder}" if self.folder is not None else "in memory"
+        mb = len(missing) * self._shape[0] * self._shape[1] * 5 / 2**20
+        self.report(f"synthetic head: rendering {len(missing)} of {self.num_frames} frames once "
+                    f"({mb:.0f} MB {where}); later runs read them")
+        t = time.perf_counter()
+        self._store(missing[0], rendered[missing[0]])  # compiles the renderer
+        threads = self.threads or os.cpu_count() or 1
+        # JAX runs each render without the GIL: the threads use all cores
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            for _ in pool.map(lambda i: self._store(i, rendered[i]), missing[1:]):
+                pass
+        self.report(f"synthetic head: rendered {len(missing)} frames in "
+                    f"{time.perf_counter() - t:.0f} s")
+
+    def _load(self, i: int, timestamp: float, intrinsics):
+        from ..vision.rgbd_io import RGBDFrame
+
+        data = self._read(i)
+        if data is None:
+            raise SourceError(f"{self.name}: frame {i} is missing from the frame cache "
+                              f"{self.folder}")
+        h, w = self._shape
+        buf = np.frombuffer(data, np.uint8)
+        color = buf[: h * w * 3].reshape(h, w, 3)
+        depth = buf[h * w * 3:].view("<u2").reshape(h, w).astype(np.float32) * np.float32(
+            CACHE_DEPTH_STEP)
+        return RGBDFrame(color, depth, intrinsics, timestamp, f"synthetic_{i:05d}")
 
 
 # ------------------------------------------------------------------------------- video
@@ -242,6 +559,7 @@ class VideoSource(Source):
     """
 
     depth_free = True
+    front_end = True
 
     def __init__(self, target, *, ipd: float | None = None, fov: float = 60.0,
                  intrinsics=None, model_dir=None, monocular: str = "net",
@@ -306,8 +624,7 @@ class VideoSource(Source):
         frame = self._first
         t = clock.now()
         while not stop.is_set():
-            r = self.estimator.process(frame, t - t0)
-            emit(Measurement(t, r.position, r.quaternion, r.status.name, r.confidence))
+            emit(self._process(clock, t0, t, frame, 0))
             ok, frame = self.cap.read()
             t = clock.now()
             if not ok:
@@ -321,22 +638,28 @@ class VideoSource(Source):
             if stop.is_set():
                 return
             due = math.floor((clock.now() - t0) / period + 1e-9)
+            skipped = 0
             while index < due:  # late: skip frames (grab does not decode them into arrays)
                 if not self.cap.grab():
                     return
                 index += 1
+                skipped += 1
                 frame = None
             if frame is None:
                 ok, frame = self.cap.retrieve()
                 if not ok:
                     return
-            t = t0 + index * period
-            r = self.estimator.process(frame, t - t0)
-            emit(Measurement(t, r.position, r.quaternion, r.status.name, r.confidence))
+            emit(self._process(clock, t0, t0 + index * period, frame, skipped))
             ok, frame = self.cap.read()
             index += 1
             if not ok:
                 return
+
+    def _process(self, clock, t0: float, t: float, frame, dropped: int) -> Measurement:
+        t_work = clock.now()
+        r = self.estimator.process(frame, t - t0)
+        return Measurement(t, r.position, r.quaternion, r.status.name, r.confidence,
+                           dropped=dropped, work=clock.now() - t_work)
 
     def close(self) -> None:
         if self.cap is not None:
@@ -368,6 +691,8 @@ class RealSenseSource(Source):
         model_dir: YuNet model cache.
         timeout: seconds to wait for a frame before counting it as lost.
     """
+
+    front_end = True
 
     def __init__(self, serial: str | None = None, *, width: int = 640, height: int = 480,
                  fps: int = 30, frames=None, depth_scale: float = 0.001, model_dir=None,
@@ -455,8 +780,10 @@ class RealSenseSource(Source):
             if self.estimator is None:
                 self.estimator = _with_models(lambda: HeadPoseEstimator(
                     self.intrinsics, model_dir=self.model_dir))
+            t_work = clock.now()
             r = self.estimator.process(frame[0], frame[1], t - t0, self.intrinsics)
-            emit(Measurement(t, r.position, r.quaternion, r.status.name))
+            emit(Measurement(t, r.position, r.quaternion, r.status.name,
+                             work=clock.now() - t_work))
 
     def close(self) -> None:
         if self.pipeline is not None:
@@ -469,25 +796,40 @@ class RealSenseSource(Source):
 
 # ------------------------------------------------------------------------------- parsing
 def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: float = 60.0,
-                monocular: str = "net", head_size: float | None = None) -> Source:
+                monocular: str = "net", head_size: float | None = None,
+                worker: bool = True) -> Source:
     """A :class:`Source` from the ``SOURCE`` argument of ``phjax live`` (see the module docs).
 
     ``ipd``, ``fov``, ``monocular`` and ``head_size`` apply to webcam / video sources
-    (:class:`VideoSource`).
+    (:class:`VideoSource`). With ``worker=True`` (default) a source with a vision front-end
+    (:attr:`Source.front_end`: synthetic, RGB-D folders, webcam / video, RealSense) is
+    returned as a :class:`phjax.live.WorkerSource`: its frames and front-end run in a worker
+    process, where they cannot hold the render loop (real clock only; pass ``worker=False``
+    with a :class:`~phjax.live.VirtualClock`).
 
     Raises:
         SourceError: unknown source, missing file, bad number.
     """
+    if worker:
+        options = {"model_dir": model_dir, "ipd": ipd, "fov": fov, "monocular": monocular,
+                   "head_size": head_size}
+        local = open_source(spec, worker=False, **options)
+        if not local.front_end:
+            return local
+        from ._worker import WorkerSource
+
+        return WorkerSource(local, str(spec), options)
     spec = str(spec)
     kind, _, arg = spec.partition(":")
     if kind == "synthetic":
-        from ..vision.rgbd_io import open_rgbd
-
         try:
-            seq = open_rgbd(spec)
-        except ValueError as e:
-            raise SourceError(str(e)) from None
-        return RGBDReplaySource(seq, model_dir=model_dir)
+            values = [int(v) for v in arg.split(":")] if arg else []
+        except ValueError:
+            values = None
+        if values is None or len(values) > 2 or (values and values[0] < 1):
+            raise SourceError(f"bad synthetic source {spec!r}; use synthetic[:N[:SEED]] "
+                              "(N >= 1 frames)")
+        return SyntheticSource(*values, model_dir=model_dir)
     if kind == "webcam":
         try:
             index = int(arg) if arg else 0
@@ -497,6 +839,10 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
                            head_size=head_size)
     if kind == "realsense":
         return RealSenseSource(arg or None, model_dir=model_dir)
+    if kind == "udp":
+        from ._udp import UdpSource
+
+        return UdpSource.from_spec(spec)
     if kind == "poses":
         if not arg:
             raise SourceError("poses: needs a file, poses:FILE")
@@ -517,4 +863,5 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
         return VideoSource(os.fspath(path), ipd=ipd, fov=fov, model_dir=model_dir,
                            monocular=monocular, head_size=head_size)
     raise SourceError(f"unknown source {spec!r}: use synthetic[:N[:SEED]], an RGB-D folder, "
-                      "webcam[:INDEX], a video file, realsense[:SERIAL] or poses:FILE")
+                      "webcam[:INDEX], a video file, realsense[:SERIAL], poses:FILE or "
+                      "udp://[HOST]:PORT")

@@ -1,5 +1,5 @@
 """Helpers of the live tests (imported by them): a loopback UDP listener, a seeded YuNet model
-cache, motion to replay."""
+cache, motion to replay (and as a pose file), process and polling helpers."""
 
 from __future__ import annotations
 
@@ -85,3 +85,41 @@ def smooth_motion(n: int, rate: float, seed: int = 0):
     p = np.array([0.0, 0.0, 0.7]) + 0.03 * np.sin(2 * np.pi * f[0] * t[:, None] + ph[0])
     rv = np.radians(15.0) * np.sin(2 * np.pi * f[1] * t[:, None] + ph[1])
     return t, p, np_from_rotvec(rv)
+
+
+def write_pose_file(path, n: int, rate: float = 30.0, seed: int = 0):
+    """``smooth_motion(n, rate, seed)`` written as a TUM file at ``path``; returns the motion."""
+    from phjax.io import Trajectory, write_tum
+
+    t, p, q = smooth_motion(n, rate, seed)
+    write_tum(path, Trajectory(t, p, q))
+    return t, p, q
+
+
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie (Linux ``/proc``; elsewhere a signal
+    0 probe)."""
+    import os
+
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+    except OSError:
+        pass
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def wait_until(predicate, timeout: float, poll: float = 0.05) -> bool:
+    """Poll ``predicate`` until it is true or ``timeout`` seconds have passed (bounded)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(poll)
+    return bool(predicate())

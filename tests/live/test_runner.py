@@ -3,12 +3,23 @@
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+import sys
 import threading
 import time
 
 import numpy as np
 import pytest
-from live_helpers import UdpListener, angle_steps, listener, smooth_motion  # noqa: F401
+from live_helpers import (  # noqa: F401
+    UdpListener,
+    angle_steps,
+    listener,
+    process_alive,
+    smooth_motion,
+    wait_until,
+    write_pose_file,
+)
 
 from phjax._np_quat import np_qconj, np_qmul, np_rotvec
 from phjax.io import read_tum
@@ -16,8 +27,12 @@ from phjax.live import (
     LiveStream,
     LiveTracker,
     PoseReplaySource,
+    SourceError,
+    SyntheticSource,
     VirtualClock,
+    WorkerSource,
     live_tracker_config,
+    open_source,
     opentrack_values,
 )
 from phjax.tracking import TrackerStream
@@ -199,6 +214,384 @@ def test_stop_with_timeout_leaves_a_hung_camera_behind_and_closes_everything(lis
     t0 = time.monotonic()
     lt.run()  # returns once the request is seen, threads joined
     assert time.monotonic() - t0 < 10.0 and not lt.running
+
+
+# ------------------------------------------------------------------------ render deadlines
+def test_virtual_clock_deadline_k_is_exactly_t0_plus_k_over_rate():
+    """Absolute deadlines: sample k is rendered at t0 + k / rate, computed from k (a schedule
+    built by adding the period to the previous deadline, or to "now", drifts by its rounding
+    errors: 1e-7 s after 30 s at t0 = 1e6 s, a typical monotonic-clock reading)."""
+    t0, rate = 1e6 + 0.1234, 120.0
+    t, p, q = smooth_motion(900, 30.0, seed=4)  # 30 s
+    lt = LiveTracker(PoseReplaySource(t, p, q), rate=rate, clock=VirtualClock(t0),
+                     linger=0.0)
+    times = []
+    lt.callback = lambda s: times.append(lt.clock.now())
+    lt.run()
+    rel = np.array(times) - t0
+    k = np.round(rel * rate)
+    assert lt.missed_deadlines == 0 and len(times) == lt.sent >= 3500
+    assert (np.diff(k) == 1).all() and k[0] == lt.waiting <= 1
+    # the render times themselves (absolute, on the clock): t0 + k / rate up to the rounding
+    # of that one sum (ulp(1e6) = 1.2e-10)
+    np.testing.assert_allclose(rel, k / rate, rtol=0, atol=5e-10)
+
+
+@pytest.mark.serial
+def test_real_clock_keeps_the_deadline_grid_and_the_mean_rate():
+    """Real time, 120 Hz for 3 s: every sent sample is rendered at a deadline t0 + k / rate
+    (missed deadlines are skipped, never shifted) and the deadlines passed per second of wall
+    time are the rate within 2 % (a schedule computed from "now + period" ran at 103 Hz)."""
+    rate, duration = 120.0, 3.0
+    t, p, q = smooth_motion(int(30 * (duration + 1)), 30.0)
+    lt = LiveTracker(PoseReplaySource(t, p, q), rate=rate, duration=duration)
+    got = []
+    lt.callback = lambda s: got.append((time.perf_counter(), s.t))
+    lt.run()
+    wall = np.array([w for w, _ in got])
+    ts = np.array([x for _, x in got])
+    k = np.round(ts * rate)
+    assert np.abs(ts * rate - k).max() < 1e-6  # on the grid
+    assert (np.diff(k) >= 1).all()
+    # every deadline is accounted for: sent, skipped (missed) or before the first pose
+    assert lt.sent + lt.missed_deadlines + lt.waiting == k[-1] + 1 == lt.k
+    # the mean rate over the run: deadlines passed per second of wall time (a late sample is
+    # less than a period late, so this does not drift)
+    mean_rate = (lt.k - 1) / (wall[-1] - lt.t0)
+    print(f"\nmean rate {mean_rate:.2f} Hz, sent {lt.sent}, missed {lt.missed_deadlines}, "
+          f"lateness p50 {1e3 * np.median(wall - lt.t0 - ts):.2f} ms")
+    assert abs(mean_rate / rate - 1) < 0.02
+    assert lt.sent >= 0.8 * rate * duration
+
+
+@pytest.mark.parametrize("rate", [0.0, -5.0, float("nan"), float("inf"), 1000.5, 1e9])
+def test_rate_outside_the_sane_range_is_one_line_value_error(rate):
+    t, p, q = smooth_motion(3, 30.0)
+    with pytest.raises(ValueError, match=r"rate must be in \(0, 1000\] Hz") as e:
+        LiveTracker(PoseReplaySource(t, p, q), rate=rate)
+    assert "\n" not in str(e.value)
+    LiveTracker(PoseReplaySource(t, p, q), rate=1000.0, clock=VirtualClock())  # the bound
+
+
+def test_cli_rate_out_of_range_is_exit_code_2(tmp_path, capsys):
+    from phjax.cli import main
+    from phjax.io import Trajectory, write_tum
+
+    t, p, q = smooth_motion(10, 30.0)
+    write_tum(tmp_path / "p.tum", Trajectory(t, p, q))
+    assert main(["live", f"poses:{tmp_path / 'p.tum'}", "--rate", "1e9"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "rate must be in (0, 1000] Hz" in err[0], err
+
+
+# ------------------------------------------------------------------- coasting and stopping
+def _lin_rot_motion(n, rate, v, w):
+    """Constant linear velocity ``v`` (m/s) and world-frame angular velocity ``w`` (rad/s)."""
+    from phjax._np_quat import np_from_rotvec
+
+    t = np.arange(n) / rate
+    p = np.array([0.02, -0.01, 0.7]) + t[:, None] * v
+    q0 = np_from_rotvec(np.array([0.1, -0.2, 0.05]))
+    q = np_qmul(np_from_rotvec(t[:, None] * w), np.broadcast_to(q0, (n, 4)))
+    return t, p, q
+
+
+@pytest.mark.parametrize("lookahead", [0.0, 0.03])
+def test_lost_face_coasts_then_decays_continuously(lookahead):
+    """After the last measurement the stream keeps its end velocity for ``coast_time``, then
+    the velocity decays as exp(-(t - coast end) / stop_time): position and velocity are
+    continuous through both phases (finite differences of consecutive samples at 240 Hz), so
+    a stream that stopped abruptly at the end of the coast would fail here."""
+    import equinox as eqx
+
+    from phjax._np_quat import np_rotvec
+
+    rate = 240.0
+    v, w = np.array([0.08, -0.03, 0.04]), np.array([0.3, 0.6, -0.2])
+    t, p, q = _lin_rot_motion(90, 30.0, v, w)  # 3 s
+    lost = t >= 2.0
+    p[lost], q[lost] = np.nan, np.nan
+    cfg = eqx.tree_at(lambda c: c.lookahead, live_tracker_config(), lookahead)
+    lt, got = _run(PoseReplaySource(t, p, q), rate, config=cfg, adaptive=False, linger=0.0)
+    ts = np.array([s.t for s in got])
+    pos = np.array([s.position for s in got])
+    quat = np.array([s.quaternion for s in got])
+    assert np.isfinite(pos).all() and np.isfinite(quat).all()
+    seg = lt.stream.state.segment
+    end = float(seg.end)  # display time at which the last segment ends (2 s + horizon)
+    v_end, w_end = np.asarray(seg.v_end), np.asarray(seg.w_end)
+    coast, stop = float(cfg.coast_time), float(cfg.stop_time)
+    # the end velocities are the motion's (the filter had converged)
+    np.testing.assert_allclose(v_end, v, atol=0.02 * np.linalg.norm(v))
+    np.testing.assert_allclose(w_end, w, atol=0.02 * np.linalg.norm(w))
+    # finite-difference velocities at the midpoints of consecutive samples (display time)
+    vel = np.diff(pos, axis=0) * rate
+    omega = np_rotvec(np_qmul(quat[1:], np_qconj(quat[:-1]))) * rate
+    delta = 0.5 * (ts[1:] + ts[:-1]) + lookahead - end  # time past the segment's end
+    settled = ts[1:] > 1.0  # after the filter's start-up
+    assert (delta > coast + 6 * stop).sum() > 50 and ((delta > 0) & (delta < coast)).sum() > 20
+    for fd, end_v in ((vel, v_end), (omega, w_end)):
+        scale = np.linalg.norm(end_v)
+        # continuity: consecutive finite differences differ by at most the largest change of
+        # the exact motion over one step, |v_end| / (stop_time * rate) = 0.083 |v_end|,
+        # plus 0.02 |v_end| for the tracking error
+        dv = np.linalg.norm(np.diff(fd, axis=0), axis=1)[settled[1:]]
+        assert dv.max() <= (1 / (stop * rate) + 0.02) * scale, dv.max() / scale
+        # coasting: the end velocity, unchanged
+        coasting = (delta > 0.5 / rate) & (delta < coast - 0.5 / rate)
+        np.testing.assert_allclose(fd[coasting], np.broadcast_to(end_v, fd[coasting].shape),
+                                   atol=0.01 * scale)
+        # stopping: the end velocity times exp(-(delta - coast) / stop_time)
+        stopping = delta > coast + 0.5 / rate
+        expect = end_v * np.exp(-(delta[stopping] - coast) / stop)[:, None]
+        np.testing.assert_allclose(fd[stopping], expect, atol=0.01 * scale)
+    # and at rest: the total coasting displacement is end velocity * (coast + stop)
+    np.testing.assert_allclose(pos[-1] - np.asarray(seg.p_end), v_end * (coast + stop),
+                               atol=1e-3 * np.linalg.norm(v))
+
+
+# ----------------------------------------------------------------- the front-end's worker
+def _worker_poses(tmp_path, seconds: float):
+    """A WorkerSource replaying ``seconds`` of a 30 Hz pose file (a cheap worker: no vision)."""
+    path = tmp_path / "p.tum"
+    truth = write_pose_file(path, int(30 * seconds), 30.0)
+    spec = f"poses:{path}"
+    return WorkerSource(open_source(spec, worker=False), spec, {}), truth
+
+
+def test_worker_source_runs_in_another_process_and_ends_with_the_run(tmp_path):
+    """The source runs in a worker process; its measurements arrive at their capture times
+    (the worker's clock is this process's), the stream follows them, and the worker is gone
+    when the run ends (no orphan)."""
+    src, (t, p, _) = _worker_poses(tmp_path, 4.0)
+    lt = LiveTracker(src, rate=100.0, duration=2.0)
+    got = []
+    lt.callback = got.append
+    lt.start()
+    pid = src.pid
+    assert pid is not None and pid != os.getpid() and process_alive(pid)
+    lt.run()
+    assert lt.error is None and src.pid is None
+    assert wait_until(lambda: not process_alive(pid), 5.0)
+    # 2 s of a 30 Hz file: 60 measurements (61 with the one at the end time)
+    assert 58 <= lt.frames <= 61 and lt.dropped == 0
+    ages = lt.applied_ages.values()  # capture (in the worker) -> applied (here)
+    assert ages.min() >= 0 and np.median(ages) < 0.05
+    ts = np.array([s.t for s in got])
+    pos = np.array([s.position for s in got])
+    assert np.isfinite(pos).all()
+    late = ts > 0.5
+    truth = np.stack([np.interp(ts[late], t, p[:, j]) for j in range(3)], -1)
+    assert np.abs(pos[late] - truth).max() < 0.01
+
+
+def test_worker_errors_are_one_line_source_errors(tmp_path):
+    spec = f"poses:{tmp_path / 'missing.tum'}"
+    local = PoseReplaySource([0.0], [[0.0, 0.0, 0.7]], [[1.0, 0.0, 0.0, 0.0]])
+    src = WorkerSource(local, spec, {})
+    with pytest.raises(SourceError, match="pose file not found") as e:
+        src.open()
+    assert "\n" not in str(e.value)
+    src.close()
+    assert src.pid is None
+    # an unexpected exception: its type, message and where, on one line
+    src = WorkerSource(local, spec, {"bogus": 1})
+    with pytest.raises(SourceError, match=r"^TypeError: .*bogus.* \(\w+\.py:\d+\)$"):
+        src.open()
+    src.close()
+
+
+def test_worker_that_dies_ends_the_run_with_one_line_and_never_a_nan(tmp_path):
+    src, _ = _worker_poses(tmp_path, 30.0)
+    lt = LiveTracker(src, rate=100.0)
+    got = []
+    lt.callback = got.append
+    lt.start()
+    assert wait_until(lambda: lt.sent > 20, 10.0)
+    pid = src.pid
+    os.kill(pid, signal.SIGINT)  # ignored: the parent stops the worker
+    time.sleep(0.3)
+    assert process_alive(pid) and lt.running
+    os.kill(pid, signal.SIGKILL)
+    with pytest.raises(SourceError, match=r"ended without a reply \(signal 9\)$"):
+        lt.run()
+    assert not lt.running and src.pid is None
+    assert np.isfinite([s.position for s in got]).all()
+    assert np.isfinite([s.quaternion for s in got]).all()
+
+
+_PARENT = """
+import sys, threading
+from phjax.live import RealClock, WorkerSource, open_source
+spec = sys.argv[1]
+src = WorkerSource(open_source(spec, worker=False), spec, {})
+src.open()
+print(src.pid, flush=True)
+src.run(RealClock(), RealClock.now(), threading.Event(), lambda m: None)
+"""
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL")
+def test_worker_exits_when_its_parent_is_killed(tmp_path):
+    """No orphan: a worker whose parent dies (SIGKILL, no clean-up) sees its stdin close and
+    exits within seconds."""
+    path = tmp_path / "p.tum"
+    write_pose_file(path, 3000, 30.0)
+    parent = subprocess.Popen([sys.executable, "-c", _PARENT, f"poses:{path}"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        line = parent.stdout.readline()
+        assert line.strip().isdigit(), line
+        pid = int(line)
+        assert process_alive(pid)
+        parent.kill()
+        parent.wait(10)
+        assert wait_until(lambda: not process_alive(pid), 10.0)
+    finally:
+        parent.kill()
+        parent.wait(10)
+
+
+def test_request_stop_ends_a_worker_run_promptly(tmp_path):
+    """What the CLI's SIGINT / SIGTERM handlers call: the run ends, the worker with it."""
+    src, _ = _worker_poses(tmp_path, 30.0)
+    lt = LiveTracker(src, rate=100.0).start()
+    pid = src.pid
+    assert wait_until(lambda: lt.sent > 10, 10.0)
+    threading.Timer(0.2, lt.request_stop).start()
+    t0 = time.monotonic()
+    lt.run()
+    assert time.monotonic() - t0 < 5.0 and lt.error is None
+    assert wait_until(lambda: not process_alive(pid), 5.0)
+
+
+def test_a_worker_source_needs_the_real_clock(tmp_path):
+    src, _ = _worker_poses(tmp_path, 1.0)
+    with pytest.raises(ValueError, match="real time"):
+        LiveTracker(src, rate=60.0, clock=VirtualClock())
+    # a SOURCE string with a virtual clock is opened in this process
+    lt = LiveTracker(f"poses:{tmp_path / 'p.tum'}", rate=60.0, clock=VirtualClock())
+    assert not isinstance(lt.source, WorkerSource)
+
+
+def test_open_source_puts_only_vision_sources_in_a_worker(tmp_path):
+    write_pose_file(tmp_path / "p.tum", 3)
+    assert isinstance(open_source("synthetic:3"), WorkerSource)
+    assert isinstance(open_source("synthetic:3", worker=False), SyntheticSource)
+    assert isinstance(open_source(f"poses:{tmp_path / 'p.tum'}"), PoseReplaySource)
+
+
+# ----------------------------------------------------- RGB-D sources: camera and front-end
+class _Frames:
+    """A stand-in RGB-D sequence: frame ``i`` is the integer ``i``, at 30 Hz."""
+
+    def __init__(self, n):
+        self.timestamps = 100.0 + np.arange(n) / 30.0
+        self.intrinsics = None
+        self.loads = []
+
+    def __len__(self):
+        return self.timestamps.shape[0]
+
+    def __getitem__(self, i):
+        self.loads.append(i)
+        return i
+
+
+class _SlowEstimator:
+    """A front-end taking ``seconds`` per frame; remembers which frames it processed."""
+
+    def __init__(self, seconds):
+        self.seconds, self.frames = seconds, []
+
+    def process_frame(self, frame):
+        from types import SimpleNamespace
+
+        time.sleep(self.seconds)
+        self.frames.append(frame)
+        return SimpleNamespace(position=np.array([0.0, 0.0, 0.7]),
+                               quaternion=np.array([1.0, 0.0, 0.0, 0.0]),
+                               status=SimpleNamespace(name="OK"))
+
+    def reset(self):
+        pass
+
+
+@pytest.mark.serial
+def test_rgbd_camera_thread_hands_the_newest_frame_to_a_slow_front_end():
+    """Real clock, 60 frames at 30 Hz, a front-end of 0.1 s a frame: the camera delivers
+    every frame at its timestamp, the front-end takes the newest one whenever it is free (the
+    others are counted as dropped, never queued), and each measurement carries its frame's
+    capture time."""
+    from phjax.live import RealClock, RGBDReplaySource
+
+    seq, est = _Frames(60), _SlowEstimator(0.1)
+    src = RGBDReplaySource(seq, estimator=est, name="stub")
+    clock, stop, got = RealClock(), threading.Event(), []
+    t0 = clock.now() + 0.05
+    src.run(clock, t0, stop, lambda m: got.append((clock.now(), m)))
+    frames = est.frames
+    assert seq.loads == list(range(60))  # the camera read every frame once, in order
+    assert 14 <= len(frames) <= 21 and frames == sorted(frames)
+    assert len(frames) + sum(m.dropped for _, m in got) == 60  # each frame used or dropped
+    for (t_emit, m), i in zip(got, frames):
+        assert m.t == t0 + (seq.timestamps[i] - seq.timestamps[0])
+        assert abs(m.work - 0.1) < 0.05
+    # the front-end takes a frame within a camera period of its capture, plus scheduling
+    # delays (a queue would make the wait grow by 67 ms a frame, to over a second)
+    wait = np.array([t_emit - m.t - m.work for t_emit, m in got])
+    assert np.median(wait) < 1 / 30 + 0.02 and wait.max() < 1 / 30 + 0.15, wait
+
+
+def test_synthetic_frames_are_rendered_once_into_the_cache(tmp_path):
+    from phjax.live._sources import CACHE_DEPTH_STEP, _frame_keys
+    from phjax.vision import open_rgbd, synthetic_rgbd_sequence
+
+    lines = []
+    src = SyntheticSource(3, 1, estimator=_SlowEstimator(0.0), cache=tmp_path,
+                          report=lines.append)
+    src.open()
+    assert src.rendered == 3 and len(lines) == 2 and "rendering 3 of 3 frames" in lines[0]
+    ref = open_rgbd("synthetic:3:1")
+    np.testing.assert_array_equal(src.sequence.timestamps, ref.timestamps)
+    for i in range(3):
+        a, b = src.sequence[i], ref[i]
+        np.testing.assert_array_equal(a.color, b.color)
+        np.testing.assert_allclose(a.depth, b.depth, rtol=0, atol=CACHE_DEPTH_STEP / 2 + 1e-6)
+        np.testing.assert_array_equal(a.depth == 0, b.depth == 0)
+    # a longer sequence with the same frames reuses them; only the new frames are rendered
+    more = SyntheticSource(4, 1, estimator=_SlowEstimator(0.0), cache=tmp_path,
+                           report=lines.append)
+    more.open()
+    assert more.rendered == 1
+    np.testing.assert_array_equal(more.sequence[3].color, open_rgbd("synthetic:4:1")[3].color)
+    # ... but not a sequence over a minute long: its motion is another (the frames' keys
+    # are of what they show, not of their index)
+    short, long = (_frame_keys(synthetic_rgbd_sequence(n, seed=1)) for n in (4, 1900))
+    assert short[:4] != long[:4]
+
+
+# ------------------------------------------------------------------------------- status
+def test_status_line_reports_input_output_lost_age_and_lookahead():
+    import re
+
+    import equinox as eqx
+
+    t, p, q = smooth_motion(150, 30.0, seed=6)  # 5 s, the face lost for 1 s
+    lost = (t >= 2.0) & (t < 3.0)
+    p[lost], q[lost] = np.nan, np.nan
+    cfg = eqx.tree_at(lambda c: c.lookahead, live_tracker_config(), 0.02)
+    lt, _ = _run(PoseReplaySource(t, p, q), 120.0, config=cfg, linger=0.0)
+    line = lt.status_line()
+    print("\n" + line)
+    assert "\n" not in line
+    fps = float(re.search(r"in +([\d.]+) fps", line).group(1))
+    hz = float(re.search(r"out +([\d.]+) Hz", line).group(1))
+    assert abs(fps - 30.0) < 0.5 and abs(hz - 120.0) < 1.0
+    assert f"lost {lost.sum()} (no pose {lost.sum()})" in line
+    assert "lookahead 20 ms" in line and "missed 0" in line
+    s = lt.stats()
+    assert s["lost"] == lost.sum() and s["lookahead"] == 0.02
 
 
 def _rss_mb() -> float:
