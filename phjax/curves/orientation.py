@@ -21,7 +21,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ..quaternion import quat_conj, quat_exp, quat_log, quat_mul
+from . import _components as _c
 from .ph_quintic import _sample_axes
 
 __all__ = ["QuaternionHermite", "quaternion_hermite"]
@@ -65,28 +65,34 @@ class QuaternionHermite(eqx.Module):
         ``batch + (S,)``: per-curve parameters; scalar: result ``batch + (4,)``).
         """
         s, k = self._prep_s(s)
-        (b1, b2, b3), _ = self._basis(s)
-        q = self._ex(self.q0, k)
-        for b, w in ((b1, self.w1), (b2, self.w2), (b3, self.w3)):
-            q = quat_mul(quat_exp(b[..., None] * self._ex(w, k)), q)
-        return q
+        q = _c.split(self._ex(self.q0, k))
+        for e in self._exps(s, k):
+            q = _c.qmul(e, q)
+        return _c.stack(q)
+
+    def _exps(self, s, k):
+        """``exp(b_j(s) w_j)``, ``j = 1, 2, 3``, as components, computed in one XLA kernel
+        (``_components.checkpoint``; shared by :meth:`rotation` and :meth:`angular_velocity`)."""
+        b, _ = self._basis(s)
+        ws = (self.w1, self.w2, self.w3)
+        return _c.checkpoint(*(_c.qexp(_c.scale(bj, _c.split(self._ex(w, k))))
+                               for bj, w in zip(b, ws)))
 
     def angular_velocity(self, s: Float[ArrayLike, "*#batch S"]) -> Float[Array, "*batch S 3"]:
         """World-frame angular velocity (rad/s, physical time) at ``s`` (shapes as
         :meth:`rotation`)."""
         s, k = self._prep_s(s)
-        (b1, b2, b3), (d1, d2, d3) = self._basis(s)
-        w1, w2, w3 = (self._ex(w, k) for w in (self.w1, self.w2, self.w3))
-        e2 = quat_exp(b2[..., None] * w2)
-        e3 = quat_exp(b3[..., None] * w3)
+        _, (d1, d2, d3) = self._basis(s)
+        w1, w2, w3 = (_c.split(self._ex(w, k)) for w in (self.w1, self.w2, self.w3))
+        _, e2, e3 = self._exps(s, k)
         # q' q* = d3 w3 + E3 (d2 w2) E3* + E3 E2 (d1 w1) E2* E3*  (world frame, per unit s)
         def rot(e, v):
-            vq = jnp.concatenate([jnp.zeros_like(v[..., :1]), v], -1)
-            return quat_mul(quat_mul(e, vq), quat_conj(e))[..., 1:]
+            return _c.qmul(_c.qmul(e, (0.0,) + v), _c.qconj(e))[1:]
 
-        omega = d3[..., None] * w3 + rot(e3, d2[..., None] * w2) + rot(quat_mul(e3, e2), d1[..., None] * w1)
-        dur = self.duration.reshape(self.duration.shape + (1,) * k)[..., None]
-        return 2 * omega / dur
+        omega = _c.add(_c.add(_c.scale(d3, w3), rot(e3, _c.scale(d2, w2))),
+                       rot(_c.qmul(e3, e2), _c.scale(d1, w1)))
+        dur = self.duration.reshape(self.duration.shape + (1,) * k)
+        return _c.stack(tuple(2 * x / dur for x in omega))
 
 
 def _hermite_factors(q0, q1, w0, w1, duration):
@@ -96,7 +102,13 @@ def _hermite_factors(q0, q1, w0, w1, duration):
     broadcasts with ``w0``)."""
     a = duration * w0 / 6
     c = duration * w1 / 6
-    return a, quat_mul(quat_mul(quat_exp(-c), quat_mul(q1, quat_conj(q0))), quat_exp(-a)), c
+    return a, _c.stack(_middle(*(_c.split(x) for x in (q0, q1, a, c)))), c
+
+
+def _middle(q0, q1, a, c):
+    """``exp(-c) q1 q0* exp(-a)`` on components."""
+    rel = _c.qmul(q1, _c.qconj(q0))
+    return _c.qmul(_c.qmul(_c.qexp(_c.neg(c)), rel), _c.qexp(_c.neg(a)))
 
 
 def quaternion_hermite(
@@ -120,9 +132,11 @@ def quaternion_hermite(
     dtype = jnp.result_type(float, q0, q1, w0, w1)
     q0, q1, w0, w1 = (x.astype(dtype) for x in (q0, q1, w0, w1))
     duration = jnp.asarray(duration, dtype)
-    a, mid, c = _hermite_factors(q0, q1, w0, w1, duration[..., None])
-    mid = jnp.where(mid[..., :1] < 0, -mid, mid)  # shortest arc
-    b = quat_log(mid)
+    a = duration[..., None] * w0 / 6
+    c = duration[..., None] * w1 / 6
+    mid = _middle(*(_c.split(x) for x in (q0, q1, a, c)))
+    mid = _c.where(mid[0] < 0, _c.neg(mid), mid)  # shortest arc
+    b = _c.stack(_c.qlog(mid))
     batch = jnp.broadcast_shapes(q0.shape[:-1], b.shape[:-1], duration.shape)
     return QuaternionHermite(
         q0=jnp.broadcast_to(q0, batch + (4,)),

@@ -53,33 +53,31 @@ is ``t[..., None]`` (shape ``B + (1,)``).
 from __future__ import annotations
 
 import functools
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
-from .._jit import jit
+from .._jit import filter_jit, jit
 from .._misc import (
     dot_last,
     safe_atan2,
     safe_div,
     safe_norm,
-    safe_normalize,
     safe_sqrt,
     sum_last,
-    unit_perpendicular,
 )
 from .._misc import _UNROLL_SIZE
 from ..quaternion import quat_conj, quat_mul, quat_normalize, quat_to_matrix
+from . import _components as _c
 
 __all__ = ["PHQuintic", "hermite_quintic", "near_optimal_angles", "FrameKind"]
 
 FrameKind = Literal["frenet", "euler_rodrigues", "rmf"]
-
-_I = np.array([0.0, 1.0, 0.0, 0.0])
 
 # Bernstein -> power basis matrices: power[j] = sum_k M[j, k] bern[k]
 def _bern_to_power(n: int) -> np.ndarray:
@@ -112,17 +110,13 @@ def _jit_method(fn):
     """``eqx.filter_jit`` for an evaluation method: the parameter array is converted to an
     array of the curve's dtype first (so Python floats do not become static), other
     non-array arguments (frame kind, node counts) are static."""
-    jitted = eqx.filter_jit(fn)
+    jitted = filter_jit(fn)
 
     @functools.wraps(fn)
     def wrapper(self, t, *args, **kwargs):
         return jitted(self, jnp.asarray(t, dtype=self.dtype), *args, **kwargs)
 
     return wrapper
-
-
-def _qpure(v):
-    return jnp.concatenate([jnp.zeros_like(v[..., :1]), v], axis=-1)
 
 
 def _qexp_i(phi):
@@ -133,34 +127,33 @@ def _qexp_i(phi):
 
 def _sandwich_i(a, b):
     """Vector part of ``a i b*`` (closed form of the quaternion product)."""
-    a0, a1, a2, a3 = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
-    b0, b1, b2, b3 = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    x = a0 * b0 + a1 * b1 - a2 * b2 - a3 * b3
-    y = a0 * b3 + a1 * b2 + a2 * b1 + a3 * b0
-    z = -a0 * b2 + a1 * b3 - a2 * b0 + a3 * b1
-    return jnp.stack([x, y, z], axis=-1)
+    return _c.stack(_c.sandwich_i(_c.split(a), _c.split(b)))
 
 
 def _sym_i(a, b):
     """``a i b* + b i a*`` (a pure vector)."""
-    return _sandwich_i(a, b) + _sandwich_i(b, a)
+    return _c.stack(_c.sym_i(_c.split(a), _c.split(b)))
+
+
+_EX = (1.0, 0.0, 0.0)  # x axis (components)
 
 
 def _unit_fibre(xhat, u, m=None):
-    """Unit quaternion ``Q`` with ``Q u Q* = xhat`` for unit vectors ``xhat``, ``u``.
+    """Unit quaternion ``Q`` with ``Q u Q* = xhat`` for unit vectors ``xhat``, ``u`` (components).
 
     Bisector branch when ``xhat . u > -1/2`` (denominator >= 1), otherwise the product of the
     bisector of ``(xhat, -u)`` with a unit vector ``m`` perpendicular to ``u`` (denominator
     >= sqrt(3); default :func:`unit_perpendicular`). Both are exact; the angle origin jumps by a
     phase at the switch.
     """
-    c = dot_last(xhat, u, keepdims=True)
+    c = _c.dot(xhat, u)
     main = c > -0.5
-    n1 = (xhat + u) / safe_sqrt(jnp.where(main, 2 + 2 * c, 1.0))
-    n2 = (xhat - u) / safe_sqrt(jnp.where(main, 1.0, 2 - 2 * c))
-    m = unit_perpendicular(u) if m is None else m
-    q_alt = quat_mul(_qpure(n2), _qpure(m))
-    return jnp.where(main, _qpure(n1), q_alt)
+    # 1/|xhat + u| on the bisector branch, 1/|xhat - u| on the other (the square >= 1 either way)
+    rho = lax.rsqrt(jnp.where(main, 2 + 2 * c, 2 - 2 * c))
+    n1 = _c.scale(rho, _c.add(xhat, u))
+    n2 = _c.scale(rho, _c.sub(xhat, u))
+    m = _c.unit_perpendicular(u) if m is None else m
+    return _c.where(main, (0.0,) + n1, _c.qmul_pure(n2, m))
 
 
 def _check_vec3(name: str, x) -> Array:
@@ -174,59 +167,120 @@ def _float_dtype(*xs):
     return jnp.result_type(float, *xs)
 
 
-class _Frame(eqx.Module):
-    """Fibre map for one Hermite problem: ``fib(x, phase)`` in canonical (axis ``i``) form."""
+# The construction works on component tuples (``phjax.curves._components``: ``(w, x, y, z)`` of
+# batch-shaped arrays) in steps that each end in one ``_c.checkpoint`` (one XLA kernel for what the
+# next steps need): XLA:CPU then compiles it to a few kernels instead of one per quaternion
+# product and per vector component (compile time grows with the number of kernels). The
+# array-valued ``_sandwich_i``, ``_sym_i``, ``_Frame.fib``, ``_prepare``, ``_ends``, ``_cc_angles``
+# and ``_from_coefficients`` wrap it for other modules.
+class _Data(NamedTuple):
+    """What several steps use of one Hermite problem's data ``p0, p1, d0, d1`` (components)."""
 
-    u: Array  # (..., 3) construction axis
-    r: Array  # (..., 4) unit quaternion with r i r* = u
-    m: Array  # (..., 3) unit vector perpendicular to u for the second fibre branch
+    d1: tuple  # d1 (as given)
+    dp: tuple  # p1 - p0
+    w: tuple  # 3 (p1 - p0) - (d0 + d1), the CC target (see _cc_angles_c)
+    g0: tuple  # 120 (p1 - p0) - 15 (d0 + d1), the data part of the closing condition
+    d0hat: tuple  # d0/|d0| where d0 != 0
+    d1hat: tuple  # d1/|d1| where d1 != 0
+    axis: tuple  # data-driven axis: d0/|d0|, else d1/|d1|, else (p1 - p0)/|p1 - p0|, else x
+    n0: Array  # |d0|
+    n1: Array  # |d1|
+    scale: Array  # |p1 - p0| + |d0| + |d1|
+
+    def unit(self, k: int, fallback) -> tuple:
+        """``d_k / |d_k|`` (``k`` = 0, 1), ``fallback`` where ``d_k = 0``."""
+        return _c.where((self.n0, self.n1)[k] > 0, (self.d0hat, self.d1hat)[k], fallback)
+
+
+def _data(p0, p1, d0, d1) -> _Data:
+    """:class:`_Data` of the arrays ``p0, p1, d0, d1`` ``(..., 3)``, computed in one kernel."""
+    # the differences as arrays: XLA then computes them inside the kernel (a component shared
+    # by several later square roots would be a kernel of its own)
+    dp, dsum, d0, d1 = (_c.split(x) for x in (p1 - p0, d0 + d1, d0, d1))
+    w = _c.sub(_c.scale(3, dp), dsum)
+    g0 = tuple(120 * a - 15 * b for a, b in zip(dp, dsum))
+    n0, n1 = _c.norm(d0), _c.norm(d1)
+    scale = _c.norm(dp) + n0 + n1
+    d0hat, d1hat = _c.normalize(d0), _c.normalize(d1)
+    axis = _c.where(n0 > 0, d0hat, _c.where(n1 > 0, d1hat, _c.normalize(dp, fallback=_EX)))
+    *vecs, (n0,), (n1,), (scale,) = _c.checkpoint(dp, w, g0, d0hat, d1hat, axis, (n0,), (n1,),
+                                                  (scale,))
+    return _Data(d1, *vecs, n0, n1, scale)
+
+
+class _Frame(eqx.Module):
+    """Fibre map for one Hermite problem: ``fib(x, phase)`` in canonical (axis ``i``) form.
+
+    The fields are component tuples (batch-shaped arrays, see ``_components``)."""
+
+    u: tuple  # 3 components: construction axis
+    r: tuple  # 4 components: unit quaternion with r i r* = u
+    m: tuple  # 3 components: unit vector perpendicular to u for the second fibre branch
+
+    def fib_c(self, x, phase=None):
+        """``sqrt|x| Q(x) r exp(phase i)`` for a vector ``x`` given as components (``phase``
+        ``None``: 0), with ``Q(x) = Q(u)`` where ``x = 0``."""
+        return self.fib_unit(_c.norm(x), _c.normalize(x, fallback=self.u), phase)
+
+    def fib_unit(self, n, xhat, phase=None):
+        """:meth:`fib_c` of the vector ``n xhat`` (``xhat`` = ``u`` where ``n = 0``)."""
+        q = _c.qmul(_unit_fibre(xhat, self.u, self.m), self.r)
+        if phase is not None:
+            q = _c.qmul_exp_i(q, phase)
+        return _c.scale(safe_sqrt(n), q)
 
     def fib(self, x, phase):
-        n = safe_norm(x, keepdims=True)
-        xhat = safe_normalize(x, fallback=self.u)
-        q = quat_mul(_unit_fibre(xhat, self.u, self.m), self.r)
-        return safe_sqrt(n) * quat_mul(q, _qexp_i(phase))
+        """:meth:`fib_c` on arrays: ``x`` ``(..., 3)``, result ``(..., 4)``."""
+        return _c.stack(self.fib_c(_c.split(x), phase))
 
 
-def _prepare(p0, p1, d0, d1, axis):
+def _validate(p0, p1, d0, d1):
+    """The data as arrays of one float dtype and one shape ``(..., 3)``."""
     p0, p1, d0, d1 = (_check_vec3(n, x) for n, x in zip(("p0", "p1", "d0", "d1"), (p0, p1, d0, d1)))
     dtype = _float_dtype(p0, p1, d0, d1)
     p0, p1, d0, d1 = (x.astype(dtype) for x in (p0, p1, d0, d1))
-    p0, p1, d0, d1 = jnp.broadcast_arrays(p0, p1, d0, d1)
-    if axis is None:
-        return p0, p1, d0, d1, _data_frame(p0, p1, d0, d1)
-    axis = _check_vec3("axis", axis).astype(dtype)
+    return jnp.broadcast_arrays(p0, p1, d0, d1)
+
+
+def _prepare(p0, p1, d0, d1, axis):
+    """Validated data arrays and the :class:`_Frame` of ``axis`` (``None``: data-driven)."""
+    p0, p1, d0, d1 = _validate(p0, p1, d0, d1)
+    data = _data(p0, p1, d0, d1)
+    return p0, p1, d0, d1, _data_frame(data) if axis is None else _axis_frame(data, axis)
+
+
+def _axis_frame(data: _Data, axis) -> _Frame:
+    """:class:`_Frame` of a user-given ``axis`` array."""
+    shape = data.n0.shape
+    axis = _check_vec3("axis", axis).astype(data.n0.dtype)
     if not _is_tracer(axis) and not bool(jnp.all(safe_norm(axis) > 0)):
         raise ValueError("axis must be non-zero")
-    ex = jnp.broadcast_to(jnp.asarray([1.0, 0.0, 0.0], dtype), p0.shape)
-    u = safe_normalize(jnp.broadcast_to(axis, p0.shape), fallback=ex)
-    return p0, p1, d0, d1, _make_frame(u, p0, p1, d0, d1)
+    u = _c.normalize(_c.split(jnp.broadcast_to(axis, shape + (3,))), fallback=_EX)
+    return _make_frame(u, data)
 
 
-def _data_frame(p0, p1, d0, d1) -> _Frame:
+def _data_frame(data: _Data) -> _Frame:
     """Data-driven axis: d0/|d0|, else d1/|d1|, else the chord direction, else x."""
-    ex = jnp.broadcast_to(jnp.asarray([1.0, 0.0, 0.0], p0.dtype), p0.shape)
-    chord = safe_normalize(p1 - p0, fallback=ex)
-    u = safe_normalize(d1, fallback=chord)
-    u = safe_normalize(d0, fallback=u)
-    return _make_frame(u, p0, p1, d0, d1)
+    return _make_frame(data.axis, data)
 
 
-def _make_frame(u, p0, p1, d0, d1) -> _Frame:
-    """Frame for axis ``u``. The second-branch direction ``m`` comes from the data (the part of
-    ``(p1 - p0) + d1`` perpendicular to ``u``, smooth except where that part vanishes; then that
-    of ``p1 - p0``, then of ``d1``) so that fixed angles stay rotation-covariant; only when all
-    data are parallel to ``u`` is a fixed rule used."""
-    ex = jnp.broadcast_to(jnp.asarray([1.0, 0.0, 0.0], u.dtype), u.shape)
-    scale = safe_norm(p1 - p0, keepdims=True) + safe_norm(d0, keepdims=True) + safe_norm(d1, keepdims=True)
-    m = unit_perpendicular(u)
+def _make_frame(u, data: _Data) -> _Frame:
+    """Frame for axis ``u`` (components). The second-branch direction ``m`` comes from the data
+    (the part of ``(p1 - p0) + d1`` perpendicular to ``u``, smooth except where that part
+    vanishes; then that of ``p1 - p0``, then of ``d1``) so that fixed angles stay
+    rotation-covariant; only when all data are parallel to ``u`` is a fixed rule used."""
+    d1, dp = data.d1, data.dp
+    # the parts of the data vectors perpendicular to u and the fixed rule's candidates, one kernel
+    perp = lambda v: _c.sub(v, _c.scale(_c.dot(v, u), u))
+    *vps, ua, ub = _c.checkpoint(*(perp(v) for v in (d1, dp, _c.add(dp, d1))),
+                                 *_c.perpendicular_candidates(u))
+    m = _c.unit_perpendicular(u, (ua, ub))
     # first data vector (in this order) with a part perpendicular to u: (p1 - p0) + d1, then
     # p1 - p0, then d1 (the sum cancels when d1 = -(p1 - p0), found by hypothesis)
-    for v in (d1, p1 - p0, (p1 - p0) + d1):
-        vp = v - dot_last(v, u, keepdims=True) * u
-        ok = safe_norm(vp, keepdims=True) > 1e-9 * scale
-        m = jnp.where(ok, safe_normalize(vp), m)
-    return _Frame(u=u, r=_unit_fibre(u, ex), m=m)
+    for vp in vps:
+        ok = _c.norm(vp) > 1e-9 * data.scale
+        m = _c.where(ok, _c.normalize(vp), m)
+    return _Frame(*_c.checkpoint(u, _unit_fibre(u, _EX), m))
 
 
 def _sample_axes(batch: tuple[int, ...], shape: tuple[int, ...], name: str = "t") -> int:
@@ -433,7 +487,7 @@ class PHQuintic(eqx.Module):
         den = sigma * sigma * 4 * (b[..., 1] ** 2 + b[..., 2] ** 2)
         return safe_div(num, den)
 
-    @eqx.filter_jit
+    @filter_jit
     def bending_energy(self, num_nodes: int = 64) -> Float[Array, "*batch"]:
         """Bending energy ``int kappa^2 ds = int kappa^2 sigma dt`` (Gauss-Legendre quadrature)."""
         x, w = _gauss_legendre(num_nodes)
@@ -578,9 +632,15 @@ def _horner4(c, t):
 
 # ------------------------------------------------------------------------- construction
 def _ends(p0, p1, d0, d1, frame: _Frame):
-    a0 = frame.fib(d0, jnp.zeros(d0.shape[:-1], d0.dtype))
-    a2 = frame.fib(d1, jnp.zeros(d1.shape[:-1], d1.dtype))
-    return a0, a2
+    """End coefficients ``A0``, ``A2`` at ``phi0 = phi2 = 0`` (arrays ``(..., 4)``)."""
+    data = _data(p0, p1, d0, d1)
+    return tuple(_c.stack(a) for a in _ends_c(data, frame))
+
+
+def _ends_c(data: _Data, frame: _Frame, *more):
+    """:func:`_ends` on components, and the component tuples ``more`` (one kernel)."""
+    return _c.checkpoint(*(frame.fib_unit(n, data.unit(k, frame.u))
+                           for k, n in enumerate((data.n0, data.n1))), *more)
 
 
 def near_optimal_angles(
@@ -617,19 +677,47 @@ def near_optimal_angles(
 
 @jit
 def _near_optimal_jit(p0, p1, d0, d1, axis):
-    p0, p1, d0, d1, frame = _prepare(p0, p1, d0, d1, axis)
-    return _cc_angles(p0, p1, d0, d1, None if axis is None else frame)
+    data = _data(*_validate(p0, p1, d0, d1))
+    dframe = _data_frame(data)
+    frame = None if axis is None else _axis_frame(data, axis)
+    return _cc_angles_c(data, dframe, _cc_inputs(data, dframe), frame)
 
 
 def _cc_angles(p0, p1, d0, d1, frame=None):
-    """CC angles in the convention of ``frame`` (``None``: the data-driven convention).
+    """:func:`_cc_angles_c` on arrays ``(..., 3)``."""
+    data = _data(p0, p1, d0, d1)
+    dframe = _data_frame(data)
+    return _cc_angles_c(data, dframe, _cc_inputs(data, dframe), frame)
+
+
+def _cc_inputs(data: _Data, dframe: _Frame):
+    """``(a0, a2, e, f)`` of :func:`_cc_angles_c` (one kernel): the end coefficients in the
+    data-driven frame ``dframe`` (its ``_ends_c``) and the basis ``e``, ``f`` of ``v(beta)``."""
+    u = dframe.u
+    # With u = d0/|d0| we have Q(d0) = u (a pure quaternion), so e = 2s vect(Q1) and
+    # f = 2s vect(u Q1*); on the bisector branch f = -2s u x (d1hat - u) / |d1hat + u|, written so
+    # that it is exactly 0 for aligned tangents (no rounding noise to amplify). When d0 = 0, s = 0.
+    d1hat = data.unit(1, u)
+    q1 = _unit_fibre(d1hat, u, dframe.m)
+    s2 = 2 * safe_sqrt(data.n0 * data.n1)
+    e = _c.scale(s2, q1[1:])
+    main = _c.dot(d1hat, u) > -0.5
+    den = jnp.maximum(_c.norm(_c.add(d1hat, u)), 1.0)
+    f_main = tuple(-x / den for x in _c.cross(u, _c.sub(d1hat, u)))
+    f_alt = _c.qmul((0.0,) + u, _c.qconj(q1))[1:]
+    f = _c.scale(s2, _c.where(main, f_main, f_alt))
+    return _ends_c(data, dframe, e, f)
+
+
+def _cc_angles_c(data: _Data, dframe: _Frame, inputs, frame: _Frame | None = None):
+    """CC angles in the convention of ``frame`` (``None``: the data-driven convention), on
+    components (one kernel); ``dframe`` is ``_data_frame(data)`` and ``inputs`` its
+    :func:`_cc_inputs`.
 
     They are computed in the data-driven convention (``u = d0/|d0|``), where ``e`` and ``f`` below
     have closed forms without cancellation (``f`` is exactly 0 for aligned tangents), and then
     converted to ``frame``'s convention when that differs.
     """
-    data = _data_frame(p0, p1, d0, d1)
-    u = data.u
     # v(beta) = A0 u A2* + A2 u A0* = e cos(beta) + f sin(beta), an ellipse in the plane
     # orthogonal to m = (d1/|d1| - d0/|d0|)/|...|, so the note's projection of w along m is
     # implicit. beta puts v(beta) along w = 3(p1 - p0) - (d0 + d1): the coefficients of w in the
@@ -640,20 +728,9 @@ def _cc_angles(p0, p1, d0, d1, frame=None):
     # is better on real data (TUM fr1_desk at 33 Hz: median bending energy 1.0000003 x the
     # grid-search optimum, against 1.010 for lam = 0), equal on random data (median 1.015 x).
     # The regularisation is invariant under the angle convention, so the curve is geometric.
-    # With u = d0/|d0| we have Q(d0) = u (a pure quaternion), so e = 2s vect(Q1) and
-    # f = 2s vect(u Q1*); on the bisector branch f = -2s u x (d1hat - u) / |d1hat + u|, written so
-    # that it is exactly 0 for aligned tangents (no rounding noise to amplify). When d0 = 0, s = 0.
-    d1hat = safe_normalize(d1, fallback=u)
-    q1 = _unit_fibre(d1hat, u, data.m)
-    s = safe_sqrt(safe_norm(d0) * safe_norm(d1))[..., None]
-    e = 2 * s * q1[..., 1:]
-    main = dot_last(d1hat, u, keepdims=True) > -0.5
-    f_main = -jnp.cross(u, d1hat - u) / safe_norm(d1hat + u, keepdims=True).clip(1.0)
-    f_alt = quat_mul(_qpure(u), quat_conj(q1))[..., 1:]
-    f = 2 * s * jnp.where(main, f_main, f_alt)
-    dp = p1 - p0
-    w = 3 * dp - (d0 + d1)
-    dot = dot_last
+    # e and f: see _cc_inputs.
+    a0, a2, e, f = inputs
+    w, dot = data.w, _c.dot
     gee, gff, gef = dot(e, e), dot(f, f), dot(e, f)
     be, bf = dot(e, w), dot(f, w)
     reg = _CC_REGULARISATION * (gee + gff) / 2
@@ -661,27 +738,31 @@ def _cc_angles(p0, p1, d0, d1, frame=None):
     # alpha minimises F = |A1 - (A0 + A2)/2|^2 = |B - 5 c exp(alpha i)|^2 / 16 with
     # c = a0 exp(-beta i/2) + a2 exp(beta i/2): maximise <B, c exp(alpha i)>.
     half = beta / 2
-    a0, a2 = _ends(p0, p1, d0, d1, data)
-    a0b = quat_mul(a0, _qexp_i(-half))
-    a2b = quat_mul(a2, _qexp_i(half))
-    g = 120 * dp - 15 * (d0 + d1) + 5 * _sym_i(a0b, a2b)
-    bq = data.fib(g, jnp.zeros_like(beta))
-    c = a0b + a2b
-    ci = quat_mul(c, jnp.asarray(_I, c.dtype))
-    alpha = safe_atan2(dot(bq, ci), dot(bq, c))
+    a0b = _c.qmul_exp_i(a0, -half)
+    a2b = _c.qmul_exp_i(a2, half)
+    g = _closing_data(data, a0b, a2b)
+    bq = dframe.fib_c(g)
+    c = _c.add(a0b, a2b)
+    alpha = safe_atan2(dot(bq, _c.qmul_i(c)), dot(bq, c))
     phi0, phi2 = alpha - half, alpha + half
     if frame is None:
-        return phi0, phi2
+        return tuple(x[0] for x in _c.checkpoint((phi0,), (phi2,)))
     # convert to frame's convention: the same curve has B_frame = B_data exp(gamma i)
-    A0 = quat_mul(a0, _qexp_i(phi0))
-    A2 = quat_mul(a2, _qexp_i(phi2))
-    b_target = frame.fib(g, jnp.zeros_like(beta))
-    ph = quat_mul(quat_conj(bq), b_target)
-    rot = _qexp_i(safe_atan2(ph[..., 1], ph[..., 0]))
-    t0, t2 = _ends(p0, p1, d0, d1, frame)
-    q0 = quat_mul(quat_conj(t0), quat_mul(A0, rot))
-    q2 = quat_mul(quat_conj(t2), quat_mul(A2, rot))
-    return safe_atan2(q0[..., 1], q0[..., 0]), safe_atan2(q2[..., 1], q2[..., 0])
+    A0 = _c.qmul_exp_i(a0, phi0)
+    A2 = _c.qmul_exp_i(a2, phi2)
+    ph = _c.qmul(_c.qconj(bq), frame.fib_c(g))
+    gamma = safe_atan2(ph[1], ph[0])
+    t0, t2 = _ends_c(data, frame)
+    q0 = _c.qmul(_c.qconj(t0), _c.qmul_exp_i(A0, gamma))
+    q2 = _c.qmul(_c.qconj(t2), _c.qmul_exp_i(A2, gamma))
+    phi0, phi2 = safe_atan2(q0[1], q0[0]), safe_atan2(q2[1], q2[0])
+    return tuple(x[0] for x in _c.checkpoint((phi0,), (phi2,)))
+
+
+def _closing_data(data: _Data, A0, A2):
+    """``g = 120 (p1 - p0) - 15 (d0 + d1) + 5 (A0 i A2* + A2 i A0*)`` (components, one kernel),
+    so that the closing quaternion ``B = 3 A0 + 4 A1 + 3 A2`` solves ``B i B* = g``."""
+    return _c.checkpoint(tuple(a + 5 * b for a, b in zip(data.g0, _c.sym_i(A0, A2))))[0]
 
 
 def hermite_quintic(
@@ -733,35 +814,49 @@ def _hermite_impl(p0, p1, d0, d1, phi0, phi2, phi1, axis) -> PHQuintic:
     except ValueError as err:
         raise ValueError(f"hermite_quintic: batch shapes do not broadcast: {shapes}") from err
     p0, p1, d0, d1 = (jnp.broadcast_to(x, batch + (3,)) for x in (p0, p1, d0, d1))
-    p0, p1, d0, d1, frame = _prepare(p0, p1, d0, d1, axis)
+    p0, p1, d0, d1 = _validate(p0, p1, d0, d1)
     dtype = p0.dtype
+    data = _data(p0, p1, d0, d1)
+    frame = _data_frame(data) if axis is None else _axis_frame(data, axis)
+    ends = None
     if phi0 is None:
-        phi0, phi2 = _cc_angles(p0, p1, d0, d1, None if axis is None else frame)
+        dframe = frame if axis is None else _data_frame(data)
+        inputs = _cc_inputs(data, dframe)  # with the ends in the data-driven frame
+        phi0, phi2 = _cc_angles_c(data, dframe, inputs, None if axis is None else frame)
+        if axis is None:
+            ends = inputs[:2]
     phi0, phi1, phi2 = (jnp.broadcast_to(jnp.asarray(x, dtype), batch) for x in (phi0, phi1, phi2))
-    a0, a2 = _ends(p0, p1, d0, d1, frame)
-    A0 = quat_mul(a0, _qexp_i(phi0))
-    A2 = quat_mul(a2, _qexp_i(phi2))
-    g = 120 * (p1 - p0) - 15 * (d0 + d1) + 5 * _sym_i(A0, A2)
-    B = frame.fib(g, phi1)
-    A1 = B / 4 - 3 * (A0 + A2) / 4
-    return _from_coefficients(p0, A0, A1, A2)
+    a0, a2 = _ends_c(data, frame) if ends is None else ends
+    A0 = _c.qmul_exp_i(a0, phi0)
+    A2 = _c.qmul_exp_i(a2, phi2)
+    B = frame.fib_c(_closing_data(data, A0, A2), phi1)
+    A1 = tuple(b / 4 - 3 * (x + y) / 4 for b, x, y in zip(B, A0, A2))
+    return _from_coefficients_c(_c.split(p0), A0, A1, A2)
 
 
 _hermite_jit = jit(_hermite_impl)
 
 
 def _from_coefficients(p0, A0, A1, A2) -> PHQuintic:
-    h0 = _sandwich_i(A0, A0)
-    h1 = _sym_i(A0, A1) / 2
-    h2 = (_sym_i(A0, A2) + 4 * _sandwich_i(A1, A1)) / 6
-    h3 = _sym_i(A1, A2) / 2
-    h4 = _sandwich_i(A2, A2)
-    steps = jnp.stack([h0, h1, h2, h3, h4], axis=-2) / 5
-    if p0.size * 5 <= _UNROLL_SIZE:  # small batch: running sums as adds (cumsum is a kernel)
-        pts = [p0]
-        for k in range(5):
-            pts.append(pts[-1] + steps[..., k, :])
-        pts = jnp.stack(pts, axis=-2)
-    else:
-        pts = jnp.concatenate([p0[..., None, :], p0[..., None, :] + jnp.cumsum(steps, axis=-2)], -2)
-    return PHQuintic(A0=A0, A1=A1, A2=A2, control_points=pts)
+    """The curve of ``p0 (..., 3)`` and the quaternion coefficients ``A0, A1, A2 (..., 4)``."""
+    return _from_coefficients_c(*(_c.split(x) for x in (p0, A0, A1, A2)))
+
+
+def _from_coefficients_c(p0, A0, A1, A2) -> PHQuintic:
+    """:func:`_from_coefficients` on components."""
+    # the coefficients are outputs and feed every control point: one kernel computes them
+    arrays = lax.optimization_barrier(tuple(_c.stack(a) for a in (A0, A1, A2)))
+    A0, A1, A2 = (_c.split(a) for a in arrays)
+    sym, sw = _c.sym_i, _c.sandwich_i
+    h0 = sw(A0, A0)
+    h1 = tuple(x / 2 for x in sym(A0, A1))
+    h2 = tuple((x + 4 * y) / 6 for x, y in zip(sym(A0, A2), sw(A1, A1)))
+    h3 = tuple(x / 2 for x in sym(A1, A2))
+    h4 = sw(A2, A2)
+    # control points P_{k+1} = P_k + h_k / 5 as running sums (elementwise adds fuse; a cumsum
+    # is a kernel of its own)
+    pts = [p0]
+    for h in (h0, h1, h2, h3, h4):
+        pts.append(tuple(p + x / 5 for p, x in zip(pts[-1], h)))
+    cp = jnp.stack([_c.stack(p) for p in pts], axis=-2)
+    return PHQuintic(*arrays, control_points=cp)
