@@ -253,29 +253,20 @@ class RGBDReplaySource(Source):
     def _camera(self, clock, t0, quit_: threading.Event, box: _NewestFrame) -> None:
         """Read each frame (the one due when reading ends: late frames are skipped) and hand
         it over at its timestamp."""
-        rel = self._times()
-        n, i, load_est = rel.shape[0], 0, 0.0
         try:
-            while i < n and not quit_.is_set():
-                t_start = clock.now()
-                due = int(np.searchsorted(rel, t_start - t0 + load_est, side="right")) - 1
-                skipped = max(0, min(due, n - 1) - i)
-                i += skipped
-                frame = self.sequence[i]
-                load_est = 0.7 * load_est + 0.3 * (clock.now() - t_start)
-                clock.sleep_until(t0 + rel[i], quit_)
-                if quit_.is_set():
-                    break
-                box.put((t0 + rel[i], frame), skipped)
-                i += 1
+            for t, frame, skipped in self._frames_on_time(clock, t0, quit_):
+                box.put((t, frame), skipped)
         except BaseException as e:  # noqa: BLE001 - raised by run() in the front-end thread
             box.close(e)
         else:
             box.close()
 
-    def _run_sequential(self, clock, t0, stop, emit) -> None:
-        # Loading a frame is the camera's work, not the front-end's: the frame that will be
-        # due when loading ends is loaded, then delivered at its timestamp.
+    def _frames_on_time(self, clock, t0, stop: threading.Event):
+        """Yield ``(timestamp, frame, skipped)`` at each frame's timestamp, as a camera would.
+
+        Loading a frame is the camera's work, not the front-end's: the frame that will be due
+        when loading ends is loaded (the ``skipped`` ones before it are never read), then
+        delivered at its timestamp. Stops at the end of the sequence or when ``stop`` is set."""
         rel = self._times()
         n, i, load_est = rel.shape[0], 0, 0.0
         while i < n and not stop.is_set():
@@ -288,8 +279,12 @@ class RGBDReplaySource(Source):
             clock.sleep_until(t0 + rel[i], stop)
             if stop.is_set():
                 return
-            emit(self._process(clock, t0 + rel[i], frame, skipped))
+            yield t0 + rel[i], frame, skipped
             i += 1
+
+    def _run_sequential(self, clock, t0, stop, emit) -> None:
+        for t, frame, skipped in self._frames_on_time(clock, t0, stop):
+            emit(self._process(clock, t, frame, skipped))
 
 
 class _NewestFrame:
