@@ -18,6 +18,9 @@ os.environ["XLA_FLAGS"] = " ".join(
     [os.environ.get("XLA_FLAGS", ""), *(f"--{k}={str(v).lower()}" for k, v in COMPILER_OPTIONS.items())]
 ).strip()
 
+#: XLA flag of the parallel pass (see pytest_configure)
+TEST_OPT_LEVEL = "--xla_backend_optimization_level=0"
+
 import jax  # noqa: E402
 import pytest  # noqa: E402
 from hypothesis import HealthCheck, settings  # noqa: E402
@@ -97,6 +100,14 @@ def pytest_configure(config):
     inherit it through the environment, so a program compiled by one process is loaded, not
     compiled, by the others. Fresh per run: no
     result of an earlier run (or of other code) is reused. Removed at the end of the run."""
+    if config.getoption("markexpr", "") != SERIAL and TEST_OPT_LEVEL not in os.environ["XLA_FLAGS"]:
+        # Most of the suite's time is XLA compiling small programs once. Outside the serial
+        # (real-time) pass the machine code is generated without LLVM's optimisations: the
+        # same HLO, optimised by XLA as for users, compiles about a third faster and runs
+        # slower; results agree to rounding (tests/test_jit.py compares a tracked recording
+        # with the default level to 1e-12). Set here, before JAX's backend starts; the
+        # processes tests start inherit it. Benchmarks and users keep XLA's default level.
+        os.environ["XLA_FLAGS"] = f"{os.environ['XLA_FLAGS']} {TEST_OPT_LEVEL}"
     if not os.environ.get("PYTEST_XDIST_WORKER"):
         os.environ[TEST_CACHE] = tempfile.mkdtemp(prefix="phjax-test-jax-cache-")
         config._phjax_cache_owner = True
