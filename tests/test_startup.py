@@ -13,10 +13,11 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 
-#: modules that ``import phjax`` must not import (optional extras, solver stacks, CLI / live)
+#: modules that ``import phjax`` must not import (optional extras, solver stacks, CLI / live;
+#: and, since every part loads on first use, the core too: equinox and phjax's own modules)
 HEAVY = ("optimistix", "lineax", "cv2", "torch", "kornia", "scipy", "matplotlib", "onnxruntime",
          "phjax.vision", "phjax.live", "phjax.cli", "phjax.evaluation", "phjax.tracking.tuning",
-         "phjax.curves.shape")
+         "phjax.curves.shape", "equinox", "phjax.tracking", "phjax.curves", "phjax.batch")
 
 
 def _python(code: str, env: dict | None = None) -> str:
@@ -41,6 +42,18 @@ def test_import_loads_no_heavy_part_and_every_public_name_resolves():
     assert out["missing"] == []
     assert len(out["lazy"]) == 8  # listed by dir() before they are imported
     assert out["after"]  # resolving the names above imported them on demand
+
+
+def test_core_names_load_on_first_use():
+    """``from phjax import track`` and ``phjax.TrackerConfig`` import the core on demand and
+    give the same objects as their modules."""
+    out = _python(
+        "import sys, phjax\n"
+        "from phjax import track, quat_mul\n"
+        "import phjax.tracking.tracker as T, phjax.quaternion as Q\n"
+        "print(track is T.track and quat_mul is Q.quat_mul and 'equinox' in sys.modules\n"
+        "      and phjax.TrackerConfig is T.TrackerConfig and 'track' in vars(phjax))")
+    assert out == "True"
 
 
 def test_compilation_cache_second_process_loads_instead_of_compiling(tmp_path):

@@ -700,17 +700,28 @@ def _nearest_neighbour_associator(tgt: Array, nrm: Array, tgt_ok: Array, n: int,
     centre = safe_div(jnp.sum(tgt, axis=0), jnp.sum(tgt_ok).astype(dtype))
     tgt_c = jnp.where(tgt_ok[:, None], tgt - centre, 0)
     half_sq = jnp.where(tgt_ok, 0.5 * jnp.sum(tgt_c * tgt_c, axis=-1), jnp.inf)
+    # bounds of |y|^2 / 2 and |y| over the valid targets, for the rounding tolerance below
+    sq_max = jnp.max(jnp.where(tgt_ok, half_sq, 0))
+    r_max = jnp.sqrt(2 * sq_max)
+    eps = jnp.finfo(dtype).eps
     chunk = min(chunk_size, max(n, 1))
     n_blocks = -(-n // chunk) if n else 0
 
     def block(xb):  # argmin_j |xb - y_j|^2 = argmin_j (|y_j|^2 / 2 - xb . y_j)
         # elementwise products (fused) instead of a K=3 matmul, and min + masked index min
-        # instead of argmin (a variadic reduction, several times slower on CPU)
+        # instead of argmin (a variadic reduction, several times slower on CPU). XLA computes
+        # ``d`` once inside each of the two reductions, and the two copies may round
+        # differently (contracted multiply-adds in one kernel and not in the other; seen with
+        # LLVM's optimisations off): the index is therefore the first ``j`` within a bound of
+        # the rounding error of ``d`` of the minimum, a nearest neighbour up to rounding, and
+        # never "no index" (which had sent 24 of 2000 exact points to the last target).
         d = half_sq[None, :] - (xb[:, None, 0] * tgt_c[None, :, 0]
                                 + xb[:, None, 1] * tgt_c[None, :, 1]
                                 + xb[:, None, 2] * tgt_c[None, :, 2])
         best = jnp.min(d, axis=-1, keepdims=True)
-        idx = jnp.min(jnp.where(d <= best, jnp.arange(m, dtype=jnp.int32), m), axis=-1)
+        norm = jnp.sqrt(xb[:, 0] ** 2 + xb[:, 1] ** 2 + xb[:, 2] ** 2)[:, None]
+        tol = 16 * eps * (sq_max + norm * r_max)
+        idx = jnp.min(jnp.where(d <= best + tol, jnp.arange(m, dtype=jnp.int32), m), axis=-1)
         return jnp.minimum(idx, m - 1)
 
     def nearest(x: Array) -> Array:
