@@ -16,7 +16,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jit import jit
-from .._jit import jit
 from ..batch import _leading_sharding, _sharded_function
 from ._shapes import MIN_FRAMES, MIN_RENDER, PAD_STEP, bounded_cache, size_class
 

@@ -780,8 +780,10 @@ class SyntheticRGBDSequence:
         wall = np.asarray(wall, np.float64)
         self.wall = np.concatenate([wall[:3], wall[3:]]) / np.linalg.norm(wall[:3])
 
-        # motion generated in 60 s blocks so that, for one seed, shorter sequences are prefixes
-        # of longer ones (the random schedule depends on the duration)
+        # motion generated in whole 60 s blocks (the random schedule depends on the duration):
+        # for one seed, sequences of up to 60 s share their motion (the shorter one is a prefix),
+        # and so do those of 60-120 s, etc. Their frames may still differ: the size of the
+        # rendered window (self.crop) depends on the whole sequence's head positions.
         duration = 60.0 * np.ceil(max(self.num_frames - 1, 1) / self.rate / 60.0)
         t, p_w, q_w = synthetic_head_motion(duration, self.rate, self.seed)
         t, p_w, q_w = t[: self.num_frames], p_w[: self.num_frames], q_w[: self.num_frames]
