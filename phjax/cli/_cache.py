@@ -3,7 +3,11 @@
 The first run of a command compiles its JAX programs (tens of seconds on a laptop CPU); the
 compiled executables are stored in a folder under the user's cache and later runs load them
 instead of compiling. Folder: ``$PHJAX_CACHE_DIR``, else ``$XDG_CACHE_HOME/phjax/jax``, else
-``~/.cache/phjax/jax``. Opt out with ``--no-cache`` or ``PHJAX_NO_COMPILATION_CACHE=1``.
+``~/.cache/phjax/jax``. Opt out with ``--no-cache`` or ``PHJAX_NO_COMPILATION_CACHE=1``. The
+programs of :func:`phjax.track` / :func:`phjax.reconstruct` are also stored traced, in the
+subfolder ``exported`` (:mod:`phjax.tracking._exported`): a later run loads them without
+tracing phjax's Python code, which the compilation cache alone cannot skip (its key is the
+traced program).
 
 Only :func:`phjax.cli.main` turns the cache on, for the duration of one command, and restores
 JAX's previous settings afterwards (so calling ``main`` from Python leaves no global change).
@@ -82,10 +86,13 @@ def compilation_cache(enabled: bool = True, command: str = "phjax",
             print(f"phjax: compiling (first run of '{command}'; cached in {path}, later runs "
                   "start faster) ...", file=sys.stderr, flush=True)
 
+    from ..tracking._exported import exported_programs
+
     enable_compilation_cache(path)
     jax.monitoring.register_event_listener(on_event)
     try:
-        yield CacheSession(path, marker)
+        with exported_programs(path / "exported"):
+            yield CacheSession(path, marker)
     finally:
         jax.monitoring.unregister_event_listener(on_event)
         for name, value in previous.items():
