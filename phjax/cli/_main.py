@@ -116,8 +116,10 @@ def cmd_demo_curve(args) -> int:
 _EPILOG = """\
 Compilation cache: the first run of a command compiles its JAX programs (tens of seconds); they
 are cached in $PHJAX_CACHE_DIR, else $XDG_CACHE_HOME/phjax/jax, else ~/.cache/phjax/jax, and
-later runs load them (a one-line note on stderr says when a first run compiles). Opt out with
---no-cache or PHJAX_NO_COMPILATION_CACHE=1; delete the folder to clear it.
+later runs load them (a one-line note on stderr says when a first run compiles); the traced
+programs of track / reconstruct are kept there too (subfolder exported), so later runs also skip
+tracing them. Opt out with --no-cache or PHJAX_NO_COMPILATION_CACHE=1; delete the folder to
+clear it.
 
 Bad input (a missing, empty or malformed file, a folder, too few poses, a rate <= 0, an unknown
 format) ends with one line 'phjax <command>: error: ...' naming the file (and the line) on
