@@ -46,6 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._url import url_options, url_port
+
 __all__ = [
     "OPENTRACK_PORT",
     "OSC_ADDRESS",
@@ -274,20 +276,14 @@ def open_output(url: str) -> Output:
     if scheme not in ("opentrack", "osc"):
         raise OutputError(f"unknown output {url!r}; use opentrack://HOST[:PORT] or "
                           "osc://HOST[:PORT]")
-    try:
-        host = parsed.hostname
-        port = parsed.port
-    except ValueError:
-        raise OutputError(f"{url}: bad port (expected an integer in 1-65535)") from None
+    host = parsed.hostname
+    port = url_port(parsed, url, OutputError)
     port_text = None if port is None else str(port)
     if not host:
         raise OutputError(f"{url}: missing host")
     if parsed.path not in ("", "/"):
         raise OutputError(f"{url}: unexpected path {parsed.path!r}")
-    query = urllib.parse.parse_qs(parsed.query, keep_blank_values=True)
-    unknown = set(query) - {"from"}
-    if unknown:
-        raise OutputError(f"{url}: unknown option(s) {', '.join(sorted(unknown))}")
+    query = url_options(parsed, url, ("from",), OutputError)
     from_port = _port(query["from"][-1], 0, url) if "from" in query else None
     if scheme == "opentrack":
         return OpenTrackOutput(host, _port(port_text, OPENTRACK_PORT, url), from_port)

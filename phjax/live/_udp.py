@@ -48,6 +48,7 @@ import numpy as np
 
 from .._np_quat import np_axis_quat, np_qmul
 from ._sources import Measurement, Source, SourceError
+from ._url import url_options, url_port
 
 __all__ = [
     "DATAGRAM_SIZE",
@@ -169,18 +170,12 @@ class UdpSource(Source):
         """
         usage = "use udp://[HOST]:PORT, e.g. udp://127.0.0.1:5005"
         parsed = urllib.parse.urlsplit(spec)
-        try:
-            port = parsed.port
-        except ValueError:
-            raise SourceError(f"{spec}: bad port (expected an integer in 1-65535)") from None
+        port = url_port(parsed, spec, SourceError)
         if port is None or port == 0:
             raise SourceError(f"{spec}: missing port; {usage}")
         if parsed.path not in ("", "/"):
             raise SourceError(f"{spec}: unexpected path {parsed.path!r}; {usage}")
-        query = urllib.parse.parse_qs(parsed.query, keep_blank_values=True)
-        unknown = set(query) - {"noise"}
-        if unknown:
-            raise SourceError(f"{spec}: unknown option(s) {', '.join(sorted(unknown))}")
+        query = url_options(parsed, spec, ("noise",), SourceError)
         noise = query.get("noise", ["rgbd"])[-1]
         if noise not in ("rgbd", "monocular"):
             raise SourceError(f"{spec}: noise must be rgbd or monocular, got {noise!r}")
