@@ -77,10 +77,20 @@ def safe_normalize(
 
 
 def safe_atan2(y: ArrayLike, x: ArrayLike) -> Array:
-    """``atan2(y, x)`` returning 0 with zero gradient at the origin."""
+    """``atan2(y, x)`` returning 0 with zero gradient at (and within the smallest normal number
+    of) the origin.
+
+    The arguments are scaled by a power of two (exact) to magnitude ~1 before ``atan2``, so that
+    the derivative ``(x dy - y dx) / (x^2 + y^2)`` does not overflow for tiny arguments (in
+    float32 ``x^2 + y^2`` underflows from ``|x|, |y| ~ 1e-19`` on); the angle is invariant under
+    the scaling, so the scale carries no gradient.
+    """
     y, x = jnp.asarray(y), jnp.asarray(x)
-    ok = (x != 0) | (y != 0)
-    return jnp.where(ok, jnp.arctan2(jnp.where(ok, y, 0), jnp.where(ok, x, 1)), 0)
+    m = jnp.maximum(jnp.abs(x), jnp.abs(y))
+    ok = m >= jnp.finfo(jnp.result_type(float, m)).tiny
+    _, e = jnp.frexp(lax.stop_gradient(jnp.where(ok, m, 1)))
+    scale = jnp.ldexp(jnp.ones_like(m), -e)
+    return jnp.where(ok, jnp.arctan2(jnp.where(ok, y, 0) * scale, jnp.where(ok, x, 1) * scale), 0)
 
 
 def unit_perpendicular(u: Float[ArrayLike, "... 3"]) -> Array:

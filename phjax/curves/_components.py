@@ -87,11 +87,12 @@ def norm(a):
     return safe_sqrt(dot(a, a))
 
 
-def normalize(a, fallback=None) -> tuple:
-    """``a / |a|``, ``fallback`` (default: ``a``, i.e. 0) where ``|a| = 0``; finite gradients
-    (:func:`phjax._misc.safe_normalize`)."""
+def normalize(a, fallback=None, floor=0.0) -> tuple:
+    """``a / |a|``, ``fallback`` (default: ``a``, i.e. 0) where ``|a|^2 <= floor`` (default:
+    where ``|a| = 0``); finite gradients (:func:`phjax._misc.safe_normalize`). A positive
+    ``floor`` keeps them finite for vectors too small to normalise in the backward pass."""
     sq = dot(a, a)
-    ok = sq > 0
+    ok = sq > floor
     r = lax.rsqrt(jnp.where(ok, sq, 1))
     out = tuple(x * r for x in a)
     if fallback is None:

@@ -174,9 +174,10 @@ def _float_dtype(*xs):
 # array-valued ``_sandwich_i``, ``_sym_i``, ``_Frame.fib``, ``_prepare``, ``_ends``, ``_cc_angles``
 # and ``_from_coefficients`` wrap it for other modules.
 class _Data(NamedTuple):
-    """What several steps use of one Hermite problem's data ``p0, p1, d0, d1`` (components)."""
+    """What several steps use of one Hermite problem's data ``p0, p1, d0, d1`` (components),
+    divided by their scale ``s`` (see :func:`_data`)."""
 
-    d1: tuple  # d1 (as given)
+    d1: tuple  # d1
     dp: tuple  # p1 - p0
     w: tuple  # 3 (p1 - p0) - (d0 + d1), the CC target (see _cc_angles_c)
     g0: tuple  # 120 (p1 - p0) - 15 (d0 + d1), the data part of the closing condition
@@ -185,7 +186,8 @@ class _Data(NamedTuple):
     axis: tuple  # data-driven axis: d0/|d0|, else d1/|d1|, else (p1 - p0)/|p1 - p0|, else x
     n0: Array  # |d0|
     n1: Array  # |d1|
-    scale: Array  # |p1 - p0| + |d0| + |d1|
+    scale: Array  # |p1 - p0| + |d0| + |d1| (1, or 0 for negligible data)
+    root: Array  # sqrt(s): the coefficients of the given data are root times those of these
 
     def unit(self, k: int, fallback) -> tuple:
         """``d_k / |d_k|`` (``k`` = 0, 1), ``fallback`` where ``d_k = 0``."""
@@ -193,10 +195,39 @@ class _Data(NamedTuple):
 
 
 def _data(p0, p1, d0, d1) -> _Data:
-    """:class:`_Data` of the arrays ``p0, p1, d0, d1`` ``(..., 3)``, computed in one kernel."""
+    """:class:`_Data` of the arrays ``p0, p1, d0, d1`` ``(..., 3)``, computed in one kernel.
+
+    The data are divided by their scale ``s = |p1 - p0| + |d0| + |d1|`` (``root`` is
+    ``sqrt(s)``). The interpolant is homogeneous, data ``lambda (p1 - p0, d0, d1)`` giving the
+    coefficients ``sqrt(lambda) A``, so the construction runs on data of scale 1 and its
+    gradients stay finite however small the data are (a head coasting to rest has velocities
+    decaying to ``1e-100`` and less; at that scale the backward pass of the square roots and
+    normalisations overflowed). Data with ``s <= tiny^(1/4)`` (``tiny`` the dtype's smallest
+    normal number: ``s`` below about ``1e-77`` in float64, ``3e-10`` in float32) give the
+    constant curve. An end derivative with ``|d_k| <= eps^1.5 s`` (``eps`` of the dtype) is set
+    to exact zero: the curve depends on ``d_k`` like ``sqrt|d_k|``, so its derivative grows like
+    ``|d_k|^(-1/2)`` and the backward pass overflows well before ``d_k = 0``; the curve moves by
+    less than about ``eps^0.75 s`` and the gradient with respect to ``d_k`` is 0, as at
+    ``d_k = 0``. NaN data give NaN.
+    """
+    info = jnp.finfo(p0.dtype)
     # the differences as arrays: XLA then computes them inside the kernel (a component shared
     # by several later square roots would be a kernel of its own)
-    dp, dsum, d0, d1 = (_c.split(x) for x in (p1 - p0, d0 + d1, d0, d1))
+    dp, d0, d1 = (_c.split(x) for x in (p1 - p0, d0, d1))
+    norms = [_c.norm(x) for x in (dp, d0, d1)]
+    s = norms[0] + norms[1] + norms[2]
+    s = jnp.where(jnp.isnan(sum(dp) + sum(d0) + sum(d1)), jnp.nan, s)  # (norms drop NaN)
+    ok = ~(s <= float(info.tiny) ** 0.25)
+    s = jnp.where(ok, s, 1)
+    inv, root = jnp.where(ok, 1 / s, 0), jnp.where(ok, jnp.sqrt(s), 0)
+    bound = float(info.eps) ** 1.5
+    # double where: a dropped derivative is never normalised, so no overflow reaches gradients
+    d0, d1 = (_c.where(~(n * inv <= bound), _c.scale(inv, x), (0.0, 0.0, 0.0))
+              for n, x in zip(norms[1:], (d0, d1)))
+    # the scaled data in one kernel (shared by every later value; a component with several
+    # users outside a kernel would be a kernel of its own)
+    d0, d1, dp, (root,) = _c.checkpoint(d0, d1, _c.scale(inv, dp), (root,))
+    dsum = _c.add(d0, d1)
     w = _c.sub(_c.scale(3, dp), dsum)
     g0 = tuple(120 * a - 15 * b for a, b in zip(dp, dsum))
     n0, n1 = _c.norm(d0), _c.norm(d1)
@@ -205,7 +236,7 @@ def _data(p0, p1, d0, d1) -> _Data:
     axis = _c.where(n0 > 0, d0hat, _c.where(n1 > 0, d1hat, _c.normalize(dp, fallback=_EX)))
     *vecs, (n0,), (n1,), (scale,) = _c.checkpoint(dp, w, g0, d0hat, d1hat, axis, (n0,), (n1,),
                                                   (scale,))
-    return _Data(d1, *vecs, n0, n1, scale)
+    return _Data(d1, *vecs, n0, n1, scale, root)
 
 
 class _Frame(eqx.Module):
@@ -279,7 +310,9 @@ def _make_frame(u, data: _Data) -> _Frame:
     # p1 - p0, then d1 (the sum cancels when d1 = -(p1 - p0), found by hypothesis)
     for vp in vps:
         ok = _c.norm(vp) > 1e-9 * data.scale
-        m = _c.where(ok, _c.normalize(vp), m)
+        # (the data have scale 1 or 0: a negligible part is not normalised, so its gradient
+        # stays finite)
+        m = _c.where(ok, _c.normalize(vp, floor=1e-18), m)
     return _Frame(*_c.checkpoint(u, _unit_fibre(u, _EX), m))
 
 
@@ -634,7 +667,7 @@ def _horner4(c, t):
 def _ends(p0, p1, d0, d1, frame: _Frame):
     """End coefficients ``A0``, ``A2`` at ``phi0 = phi2 = 0`` (arrays ``(..., 4)``)."""
     data = _data(p0, p1, d0, d1)
-    return tuple(_c.stack(a) for a in _ends_c(data, frame))
+    return tuple(_c.stack(_c.scale(data.root, a)) for a in _ends_c(data, frame))
 
 
 def _ends_c(data: _Data, frame: _Frame, *more):
@@ -831,6 +864,7 @@ def _hermite_impl(p0, p1, d0, d1, phi0, phi2, phi1, axis) -> PHQuintic:
     A2 = _c.qmul_exp_i(a2, phi2)
     B = frame.fib_c(_closing_data(data, A0, A2), phi1)
     A1 = tuple(b / 4 - 3 * (x + y) / 4 for b, x, y in zip(B, A0, A2))
+    A0, A1, A2 = (_c.scale(data.root, a) for a in (A0, A1, A2))  # back to the data's scale
     return _from_coefficients_c(_c.split(p0), A0, A1, A2)
 
 
