@@ -827,6 +827,12 @@ def hermite_quintic(
 
     Returns:
         A :class:`PHQuintic` with batch shape ``batch``.
+
+    Values and gradients are finite for zero, tiny and antiparallel data in float32 and
+    float64: an end derivative below ``eps^1.5`` of the data's scale
+    ``|p1 - p0| + |d0| + |d1|`` is treated as zero (the curve moves by at most about
+    ``eps^0.75`` of that scale), data of scale below ``tiny^(1/4)`` give the constant curve, and
+    NaN data give a NaN curve.
     """
     if (phi0 is None) != (phi2 is None):
         raise ValueError("give both phi0 and phi2, or neither (for the near-optimal default)")
