@@ -766,6 +766,12 @@ def _cc_angles_c(data: _Data, dframe: _Frame, inputs, frame: _Frame | None = Non
     w, dot = data.w, _c.dot
     gee, gff, gef = dot(e, e), dot(f, f), dot(e, f)
     be, bf = dot(e, w), dot(f, w)
+    # w orthogonal to the plane of v (all data on one line): beta is undetermined and (be, bf)
+    # are rounding noise, which would pick it (and the curve's shape) by the order of the
+    # arithmetic; exact zeros pick beta = 0 whatever the orientation of the data
+    noise2 = (64 * float(jnp.finfo(gee.dtype).eps)) ** 2 * dot(w, w) * (gee + gff)  # squared
+    line = (be * be <= noise2) & (bf * bf <= noise2)
+    be, bf = jnp.where(line, 0, be), jnp.where(line, 0, bf)
     reg = _CC_REGULARISATION * (gee + gff) / 2
     beta = safe_atan2((gee + reg) * bf - gef * be, (gff + reg) * be - gef * bf)
     # alpha minimises F = |A1 - (A0 + A2)/2|^2 = |B - 5 c exp(alpha i)|^2 / 16 with

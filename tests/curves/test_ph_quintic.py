@@ -464,6 +464,9 @@ def _check_same_shape(a, b):
          rv=np.ones(3), phi0=0.0, phi2=0.0)  # d1 = -(p1 - p0): the sum rule for m cancels
 @example(p0=np.zeros(3), p1=np.ones(3), d0=np.array([-1.0, 0, 0]), d1=np.array([-1.0, 0, 0]),
          rv=np.ones(3), phi0=0.0, phi2=0.0)  # the CC limit: fixed angles checked, default skipped
+@example(p0=np.array([-1.0907523115744941, 0, 0]), p1=np.array([-1.0907523115744941, 0, 0]),
+         d0=np.full(3, 1.8239559981309155), d1=np.full(3, -1.0907523115744941), rv=np.ones(3),
+         phi0=0.0, phi2=0.0)  # on one line, antiparallel (hypothesis): beta from rounding noise
 @given(vec, vec, vec, vec, arrays(np.float64, (3,), elements=st.floats(-3, 3, width=64)), angle, angle)
 def test_rotation_and_translation_covariance(p0, p1, d0, d1, rv, phi0, phi2):
     """Every drawn example is checked (zero or tiny end derivatives included: the axis then
