@@ -10,11 +10,17 @@ with the same latency, and large ``hermite_quintic`` batches ran 1.5 x faster
 those emitters turned off for the program it compiles; nothing global changes (other programs in
 the process, ``XLA_FLAGS``). Other backends reject the CPU option, so there it is plain
 ``jax.jit`` (on an H200 every jitted entry point failed with "No such compile option" before).
+
+:class:`Tiered` serves real-time callers (:class:`phjax.TrackerStream`): its first call compiles
+the program at XLA's ``-O0`` (about 40 % less compile time, calls about 20 % slower) and
+compiles the optimised program in a background thread, which the calls use once it is ready.
 """
 
 from __future__ import annotations
 
 import functools
+import os
+import threading
 
 import equinox as eqx
 import jax
@@ -25,10 +31,12 @@ except ImportError:  # pragma: no cover - depends on the JAX version
     def _top_level() -> bool:
         return not isinstance(jax.numpy.zeros(()), jax.core.Tracer)
 
-__all__ = ["COMPILER_OPTIONS", "filter_jit", "jit"]
+__all__ = ["COMPILER_OPTIONS", "FAST_COMPILER_OPTIONS", "Tiered", "filter_jit", "jit"]
 
 #: XLA options of every program phjax compiles (see the module docs)
 COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+#: the options of :class:`Tiered`'s first program: LLVM's optimisation off
+FAST_COMPILER_OPTIONS = {**COMPILER_OPTIONS, "xla_backend_optimization_level": 0}
 
 
 class _Jitted:
@@ -113,3 +121,86 @@ def _fill(static, dynamic):
     """``dynamic``'s leaves at the ``_DYNAMIC`` positions of ``static``, ``None`` elsewhere."""
     it = iter(dynamic)
     return [next(it) if s is _DYNAMIC else None for s in static]
+
+
+def _tiering_pays() -> bool:
+    """Whether :class:`Tiered` compiles twice: on a CPU backend, unless ``XLA_FLAGS`` already
+    compiles everything at ``-O0`` (the test suite): the second program would be the same."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    return (jax.default_backend() == "cpu"
+            and "xla_backend_optimization_level=0" not in flags.replace("--", ""))
+
+
+class Tiered:
+    """A jitted function for a real-time caller that calls it with one input signature:
+    quick to the first result, fully optimised soon after.
+
+    The first call traces and lowers the program once, compiles it with
+    :data:`FAST_COMPILER_OPTIONS` (XLA:CPU at ``-O0``: the tracker update compiles in about
+    60 % of the time and runs about 20 % slower) and starts a thread that compiles the same
+    lowered program with :data:`COMPILER_OPTIONS`; later calls use whichever program is newest.
+    The background compilation runs in XLA without Python's lock (measured: a Python loop in
+    the calling thread kept running with p99 gaps of 0.04 ms), and a process that exits before
+    it ends waits for it. Calls with another input signature (other dtypes or shapes) take
+    the plain jitted path, which also reports bad inputs. On other backends, or when
+    ``XLA_FLAGS`` already compiles at ``-O0``, it is the plain jitted function.
+
+    Arguments:
+        jitted: the function, jitted with :func:`jit`.
+    """
+
+    def __init__(self, jitted):
+        self._jitted = jitted
+        self._program = None
+        self._thread = None
+        self._lock = threading.Lock()
+        #: the exception of the background compilation, if it failed (the fast program stays)
+        self.error: BaseException | None = None
+
+    @property
+    def optimized(self) -> bool:
+        """Whether calls run the fully optimised program (or plain jit, not tiered)."""
+        return self._program is not None and (self._thread is None or not self._thread.is_alive())
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait for the background compilation (if any); returns :attr:`optimized`."""
+        if self._thread is not None:
+            self._thread.join(timeout)
+        return self.optimized
+
+    def __call__(self, *args):
+        if self._program is None:
+            with self._lock:  # two threads calling first compile once
+                if self._program is None:
+                    self._start(args)
+        program = self._program
+        if program is self._jitted:
+            return program(*args)
+        try:
+            return program(*args)
+        except TypeError:  # not the signature it was compiled for: the general path
+            return self._jitted(*args)
+
+    def __getattr__(self, name):
+        if name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self._jitted, name)
+
+    def _start(self, args) -> None:
+        """Compile the fast program (set before the thread starts, so the optimised one,
+        set by the thread, is never overwritten) and start the background compilation."""
+        if not _tiering_pays():
+            self._program = self._jitted
+            return
+        lowered = self._jitted.trace(*args).lower()
+        self._program = lowered.compile(FAST_COMPILER_OPTIONS)
+
+        def optimise():
+            try:
+                self._program = lowered.compile(COMPILER_OPTIONS)
+            # pragma: no cover - XLA failing on a program it compiled; the fast one runs on
+            except Exception as e:  # noqa: BLE001
+                self.error = e
+
+        self._thread = threading.Thread(target=optimise, name="phjax-compile")
+        self._thread.start()

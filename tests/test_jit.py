@@ -1,9 +1,12 @@
 """phjax's jit wrappers (phjax._jit): compile options on CPU only, nested use, filter_jit."""
 
+import os
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from phjax import _jit
 
@@ -89,3 +92,73 @@ def test_the_suites_optimisation_level_does_not_change_results(tmp_path):
     finite = np.isfinite(a)
     assert finite.sum() > 0.9 * a.size and np.array_equal(finite, np.isfinite(b))
     assert np.abs(a[finite] - b[finite]).max() <= 1e-12
+
+
+def _tiered(monkeypatch, fun):
+    """A :class:`_jit.Tiered` program that tiers here (the suite's XLA_FLAGS compile at -O0,
+    where tiering is off: both programs would be the same)."""
+    monkeypatch.setattr(_jit, "_tiering_pays", lambda: True)
+    return _jit.Tiered(_jit.jit(fun))
+
+
+def _poly(x, y):
+    if x.shape[-1] != 3:  # an error raised at trace time, like the tracker's shape checks
+        raise ValueError(f"x must have 3 components, got {x.shape}")
+    return jnp.sin(x) @ jnp.cos(y) + jnp.linalg.norm(x * y)
+
+
+def test_tiered_switches_to_the_optimised_program(monkeypatch):
+    f = _tiered(monkeypatch, _poly)
+    x, y = np.array([0.1, 0.2, 0.3], np.float32), np.array([0.4, 0.5, 0.6], np.float32)
+    expected = float(_poly(jnp.asarray(x), jnp.asarray(y)))
+    assert np.isclose(float(f(x, y)), expected, rtol=1e-6)
+    fast = f._program
+    assert fast is not f._jitted and f._thread is not None and f._thread.name == "phjax-compile"
+    assert f.wait(60) and f.optimized and f.error is None
+    assert f._program is not fast and not f._thread.daemon  # an exit waits for it
+    assert np.isclose(float(f(x, y)), expected, rtol=1e-6)
+    # another signature (float64 inputs, another shape) takes the general jitted path
+    assert np.isclose(float(f(x.astype(np.float64), y.astype(np.float64))), expected, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(f(np.ones((2, 3)), np.ones(3))),
+                               np.asarray(_poly(jnp.ones((2, 3)), jnp.ones(3))), rtol=1e-6)
+    with pytest.raises(ValueError, match="3 components"):
+        f(np.ones(4), np.ones(4))
+    assert f._program is not fast  # still the optimised program for the first signature
+
+
+def test_tiered_is_plain_jit_where_it_cannot_pay(monkeypatch):
+    """Under XLA_FLAGS at -O0 (this suite) or on another backend there is one program."""
+    f = _jit.Tiered(_jit.jit(_poly))
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")
+    assert float(f(np.ones(3), np.ones(3))) == pytest.approx(float(_poly(jnp.ones(3), jnp.ones(3))))
+    assert f._program is f._jitted and f._thread is None and f.optimized and f.wait()
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert not _jit._tiering_pays()
+
+
+_EXIT_SCRIPT = """
+import numpy as np, phjax
+s = phjax.TrackerStream(phjax.TrackerConfig(imm=None))
+s.update(0.0, np.zeros(3), np.array([1.0, 0, 0, 0]))
+print("optimized before exit:", s.wait_compiled(timeout=0))
+"""
+
+
+def test_a_process_exiting_during_the_background_compilation_ends_cleanly():
+    """A script that exits right after a stream's first update (its optimised program still
+    compiling) ends with status 0: a daemon thread inside XLA's compiler aborted the process
+    at exit ("terminate called ...", signal 6), so the thread is not a daemon."""
+    import subprocess
+    import sys
+
+    from conftest import TEST_OPT_LEVEL
+
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = env.get("XLA_FLAGS", "").replace(TEST_OPT_LEVEL, "").strip()
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    r = subprocess.run([sys.executable, "-c", _EXIT_SCRIPT], env=env, capture_output=True,
+                       check=False, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "optimized before exit: False" in r.stdout  # it did exit during the compilation
+    assert "terminate" not in r.stderr

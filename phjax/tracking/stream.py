@@ -9,6 +9,11 @@ and sample code jitted on those lists, so its results are theirs without flatten
 modules in Python on every call; ``stream.state`` gives or replaces the :class:`TrackerState`
 at any time.
 
+The first update compiles quickly and less optimised, and the optimised program replaces it a
+few seconds later from a background compilation (:class:`phjax._jit.Tiered`;
+``fast_start=False`` compiles the optimised program at once, :meth:`TrackerStream.wait_compiled`
+waits for it).
+
 For the lowest latency on a CPU turn off JAX's asynchronous dispatch at program start
 (``jax.config.update("jax_cpu_enable_async_dispatch", False)``); ``benchmarks/bench_tracker.py``
 measures both settings against the targets (update <= 200 us, sample <= 20 us).
@@ -22,9 +27,10 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._jit import jit
+from .._jit import Tiered, jit
 from .tracker import (
     TrackerConfig,
     TrackerState,
@@ -52,6 +58,13 @@ def _on_leaves(fn, config_def, state_def):
 
 
 @functools.cache
+def _tiered_on_leaves(fn, config_def, state_def, dtype):
+    """:func:`_on_leaves` compiled fast first, optimised in the background (one per dtype:
+    a :class:`~phjax._jit.Tiered` program serves one input signature)."""
+    return Tiered(_on_leaves(fn, config_def, state_def))
+
+
+@functools.cache
 def _sample_on_leaves(segment_def):
     """``jit(_sample)`` on the flat leaf list of a render segment."""
     return jit(lambda leaves, t: _sample(jax.tree.unflatten(segment_def, leaves), t))
@@ -70,6 +83,10 @@ class TrackerStream:
         t: start time, s.
         dtype: floating dtype of the state (default float32, the real-time precision; float64
             needs ``jax_enable_x64``).
+        fast_start: compile the first update quickly (XLA ``-O0``: on a 2-core CPU 2.2 s
+            instead of 3.7 s, the update 20 % slower) and the optimised program in a
+            background thread, used from the update after it is ready (a few seconds; one CPU
+            core busy meanwhile). ``False``: the optimised program at once.
 
     Example::
 
@@ -78,11 +95,14 @@ class TrackerStream:
         p, q = stream.sample(t_render)                      # render loop
     """
 
-    def __init__(self, config: TrackerConfig | None = None, t: float = 0.0, dtype=jnp.float32):
+    def __init__(self, config: TrackerConfig | None = None, t: float = 0.0, dtype=jnp.float32,
+                 fast_start: bool = True):
         config = TrackerConfig() if config is None else config
         state = tracker_init(config, t, dtype)
         #: the floating dtype of the state
         self.dtype = state.segment.start.dtype
+        self._fast_start = fast_start
+        self._scalar = np.dtype(self.dtype).type
         self._state_def = jax.tree.structure(state)
         self._segment_def = jax.tree.structure(state.segment)
         self._n_filter = len(jax.tree.leaves(state.filter))  # the segment's leaves follow
@@ -92,7 +112,8 @@ class TrackerStream:
     def set_config(self, config: TrackerConfig) -> None:
         """Use another config (one of the same structure does not recompile)."""
         leaves, config_def = jax.tree.flatten(tracker_config_arrays(config, self.dtype))
-        self._update = _on_leaves(_update, config_def, self._state_def)
+        self._update = (_tiered_on_leaves(_update, config_def, self._state_def, self.dtype)
+                        if self._fast_start else _on_leaves(_update, config_def, self._state_def))
         self._config_def = config_def
         self._config_leaves = leaves
         self.config = config
@@ -118,7 +139,24 @@ class TrackerStream:
             position: measured position, m (NaN if missing).
             quaternion: measured orientation wxyz (NaN if missing; sign irrelevant).
         """
+        if not isinstance(t, jax.Array):  # host values: one input signature for every call
+            t, position, quaternion = (self._scalar(t), np.asarray(position, self.dtype),
+                                       np.asarray(quaternion, self.dtype))
         self._leaves = self._update(self._config_leaves, self._leaves, t, position, quaternion)
+
+    def wait_compiled(self, timeout: float | None = None) -> bool:
+        """Wait until updates run the optimised program (see ``fast_start``).
+
+        Arguments:
+            timeout: the longest wait, s (default: until it is ready).
+
+        Returns:
+            Whether updates now run the optimised program (``True`` before the first update
+            only when ``fast_start`` is off).
+        """
+        if isinstance(self._update, Tiered):
+            return self._update.wait(timeout)
+        return True
 
     def sample(self, t_render: Float[ArrayLike, "*T"]) -> tuple[Float[Array, "*T 3"], Float[Array, "*T 4"]]:
         """Rendered pose at render time(s) ``t_render`` (as :func:`phjax.tracker_sample`).

@@ -67,6 +67,40 @@ def test_stream_equals_pure_functions(meas, dtype, model):
     assert (fn._cache_size(), s._update._cache_size()) == n0
 
 
+def test_fast_start_stream_equals_the_optimised_one(meas, monkeypatch):
+    """``fast_start`` (the default): the first update runs a program compiled at -O0 and the
+    optimised one takes over when its background compilation ends; the stream's samples agree
+    with an optimised-from-the-start stream (float32 rounding) before, across and after the
+    switch. (The suite compiles everything at -O0, where tiering is off: forced on here.)"""
+    from phjax import _jit
+    from phjax.tracking import stream as stream_mod
+
+    monkeypatch.setattr(_jit, "_tiering_pays", lambda: True)
+    stream_mod._tiered_on_leaves.cache_clear()  # not a program made with tiering off
+    try:
+        mt, mp, mq = meas
+        cfg = pj.TrackerConfig(imm=None)
+        a = pj.TrackerStream(cfg, dtype=jnp.float32)
+        b = pj.TrackerStream(cfg, dtype=jnp.float32, fast_start=False)
+        assert b.wait_compiled()
+        switched = None
+        for k in range(40):
+            a.update(float(mt[k]), mp[k], mq[k])
+            b.update(float(mt[k]), mp[k], mq[k])
+            if k == 0:
+                assert a._update._program is not a._update._jitted  # the fast program
+            if switched is None and a._update.optimized:
+                switched = k
+            if k == 20:
+                assert a.wait_compiled(120)
+            taus = jnp.asarray(mt[k] + np.array([0.0, 0.004, 0.013, 0.031]), jnp.float32)
+            for x, y in zip(a.sample(taus), b.sample(taus)):
+                np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=2e-5, atol=2e-5)
+        assert a._update.error is None and switched is not None
+    finally:
+        stream_mod._tiered_on_leaves.cache_clear()
+
+
 def test_stream_config_arrays_and_state_round_trip(meas):
     """The stream's config leaves are arrays of the state's dtype (converted once), booleans
     stay booleans, and the state setter / getter round-trip exactly."""
