@@ -51,12 +51,14 @@ def generic_kappa_tau(P, t, with_condition=False):
     r2 = bezier_eval(bezier_derivative_points(P, 2), t)
     r3 = bezier_eval(bezier_derivative_points(P, 3), t)
     c = np.cross(r1, r2)
-    kappa = np.linalg.norm(c, axis=-1) / np.linalg.norm(r1, axis=-1) ** 3
-    tau = np.sum(c * r3, axis=-1) / np.sum(c * c, axis=-1)
-    if with_condition:
-        # scale of the rounding error of tau: |r1| |r2| |r3| / |r1 x r2|^2
-        n = lambda x: np.linalg.norm(x, axis=-1)  # noqa: E731
-        return kappa, tau, n(r1) * n(r2) * n(r3) / np.sum(c * c, axis=-1)
+    # undefined (NaN / inf) where the speed or the curvature vanishes; callers skip those points
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kappa = np.linalg.norm(c, axis=-1) / np.linalg.norm(r1, axis=-1) ** 3
+        tau = np.sum(c * r3, axis=-1) / np.sum(c * c, axis=-1)
+        if with_condition:
+            # scale of the rounding error of tau: |r1| |r2| |r3| / |r1 x r2|^2
+            n = lambda x: np.linalg.norm(x, axis=-1)  # noqa: E731
+            return kappa, tau, n(r1) * n(r2) * n(r3) / np.sum(c * c, axis=-1)
     return kappa, tau
 
 
