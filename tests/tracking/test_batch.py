@@ -87,8 +87,10 @@ def test_sharded_batch_equals_one_at_a_time(tmp_path):
         ref[name + "_p"], ref[name + "_q"] = rp, rq
     data = tmp_path / "batch.npz"
     np.savez(data, times=times, positions=pos, quaternions=quat, render_times=render, **ref)
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
-               JAX_PLATFORMS="cpu", PYTHONPATH=str(HERE.parents[1]))
+    # the suite's XLA_FLAGS (compile options, -O0: tests/conftest.py) plus four host devices
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=4"
+    env = dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu",
+               PYTHONPATH=str(HERE.parents[1]))
     proc = subprocess.run([sys.executable, str(HERE / "_sharded_check.py"), str(data)], env=env,
                           capture_output=True, text=True, timeout=600, check=False)
     assert proc.returncode == 0, proc.stderr[-3000:]
