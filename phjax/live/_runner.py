@@ -131,7 +131,6 @@ class LiveStream(TrackerStream):
         if dtype is None:
             dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
         super().__init__(config, t, dtype)
-        self._dtype = np.dtype(self.dtype).type
 
     def set_config(self, config: TrackerConfig) -> None:
         """Use another config of the same structure (no recompilation)."""
@@ -152,7 +151,7 @@ class LiveStream(TrackerStream):
             noise_scale: factor on the measurement noise stds (``pos_meas_noise``,
                 ``rot_meas_noise``) for this measurement only.
         """
-        dt = self._dtype
+        dt = self._scalar  # the state's NumPy scalar type (TrackerStream)
         config = self._config_leaves
         if noise_scale != 1.0:
             config = list(config)
