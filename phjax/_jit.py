@@ -18,6 +18,7 @@ compiles the optimised program in a background thread, which the calls use once 
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import threading
@@ -31,12 +32,35 @@ except ImportError:  # pragma: no cover - depends on the JAX version
     def _top_level() -> bool:
         return not isinstance(jax.numpy.zeros(()), jax.core.Tracer)
 
-__all__ = ["COMPILER_OPTIONS", "FAST_COMPILER_OPTIONS", "Tiered", "filter_jit", "jit"]
+__all__ = ["COMPILER_OPTIONS", "FAST_COMPILER_OPTIONS", "Tiered", "extra_compiler_options", "filter_jit",
+           "jit"]
 
 #: XLA options of every program phjax compiles (see the module docs)
 COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 #: the options of :class:`Tiered`'s first program: LLVM's optimisation off
 FAST_COMPILER_OPTIONS = {**COMPILER_OPTIONS, "xla_backend_optimization_level": 0}
+
+
+#: XLA:CPU options added to :data:`COMPILER_OPTIONS` while :func:`extra_compiler_options` is
+#: active (one dict for the process: the threads a block starts compile with them too)
+_EXTRA_OPTIONS: dict = {}
+
+
+@contextlib.contextmanager
+def extra_compiler_options(**options):
+    """Programs that :func:`jit` compiles inside the block add ``options`` to
+    :data:`COMPILER_OPTIONS` (CPU backend; each set of options is its own jitted function, so
+    nothing compiled outside the block is reused or replaced). For the test suite, which
+    compiles at XLA's ``-O0`` and runs its few run-time-heavy tests with
+    ``xla_backend_optimization_level=3`` (XLA's default, as users run). Not thread-safe
+    against a second block; nested blocks restore the outer options."""
+    previous = dict(_EXTRA_OPTIONS)
+    _EXTRA_OPTIONS.update(options)
+    try:
+        yield
+    finally:
+        _EXTRA_OPTIONS.clear()
+        _EXTRA_OPTIONS.update(previous)
 
 
 class _Jitted:
@@ -51,16 +75,20 @@ class _Jitted:
     def __init__(self, fun, kwargs):
         self._fun, self._kwargs = fun, kwargs
         self._nested = jax.jit(fun, **kwargs)
-        self._top_jit = None
+        self._top_jits = {}  # by the extra options in effect (see extra_compiler_options)
         functools.update_wrapper(self, fun)
 
     @property
     def _top(self):
-        if self._top_jit is None:
-            options = COMPILER_OPTIONS if jax.default_backend() == "cpu" else None
-            self._top_jit = (jax.jit(self._fun, compiler_options=options, **self._kwargs)
-                             if options else self._nested)
-        return self._top_jit
+        key = tuple(sorted(_EXTRA_OPTIONS.items()))
+        top = self._top_jits.get(key)
+        if top is None:
+            options = ({**COMPILER_OPTIONS, **_EXTRA_OPTIONS} if jax.default_backend() == "cpu"
+                       else None)
+            top = self._top_jits[key] = (
+                jax.jit(self._fun, compiler_options=options, **self._kwargs)
+                if options else self._nested)
+        return top
 
     def __call__(self, *args, **kwargs):
         return (self._top if _top_level() else self._nested)(*args, **kwargs)
@@ -71,7 +99,8 @@ class _Jitted:
         return getattr(self._top, name)
 
     def clear_cache(self) -> None:
-        self._top.clear_cache()
+        for top in self._top_jits.values():
+            top.clear_cache()
         self._nested.clear_cache()
 
 

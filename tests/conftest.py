@@ -153,6 +153,29 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
+#: the marker of run-time-heavy tests that compile at XLA's default level (see _optimised)
+OPTIMISED = "optimised"
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """``optimised`` tests compile phjax's programs with LLVM's optimisations on (XLA's default
+    level 3, as users run them) although the parallel pass compiles at ``-O0``
+    (pytest_configure), from their fixtures' set-up to their teardown: they spend their time
+    running a few programs many times (the RGB-D front-end on many frames, an hour of live
+    frames), where ``-O0`` code is 2-3.5 x slower (measured: the slambook relative poses
+    69 s at ``-O0``, 37 s optimised; the rendered head sequence 87 / 53 s; the dense
+    refinement 40 / 24 s). Programs a test jits itself (``jax.jit``) keep the process's
+    level."""
+    if item.get_closest_marker(OPTIMISED) is None:
+        yield
+        return
+    from phjax._jit import extra_compiler_options
+
+    with extra_compiler_options(xla_backend_optimization_level=3):
+        yield
+
+
 @pytest.fixture
 def shared_data() -> Path:
     return shared_path()

@@ -16,7 +16,7 @@ def test_cpu_options_only_on_a_cpu_backend(monkeypatch):
     with a GPU default backend the top-level program is plain jax.jit."""
     f = _jit.jit(lambda x: jnp.sin(x) * 2)
     assert float(f(0.5)) == float(jnp.sin(0.5) * 2)
-    assert f._top_jit is not f._nested  # this machine: a CPU backend, options on
+    assert f._top is not f._nested  # this machine: a CPU backend, options on
     g = _jit.jit(lambda x: x + 1)
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     assert g._top is g._nested
@@ -29,6 +29,29 @@ def test_nested_and_differentiated_calls():
     assert np.isclose(float(jax.jit(lambda x: f(x) + 1)(0.3)), 2 * np.sin(0.3) + 1)
     assert np.isclose(float(jax.grad(f)(0.3)), 2 * np.cos(0.3))
     np.testing.assert_allclose(jax.vmap(f)(jnp.arange(3.0)), 2 * np.sin(np.arange(3.0)))
+
+
+def test_extra_compiler_options_compile_their_own_program():
+    """Inside extra_compiler_options a jitted function compiles once more, with the options
+    added (an unknown option reaches XLA and is rejected); outside, the first program is
+    still used; nested blocks restore the outer options."""
+    f = _jit.jit(lambda x: jnp.cos(x) * 3)
+    x = jnp.asarray(0.25)
+    base = float(f(x))
+    first = f._top
+    with _jit.extra_compiler_options(xla_backend_optimization_level=3):
+        assert float(f(x)) == pytest.approx(base, rel=1e-12)
+        block = f._top
+        assert block is not first and block._cache_size() == 1  # a program of its own
+        with _jit.extra_compiler_options(xla_no_such_phjax_option=True):
+            with pytest.raises(Exception, match="xla_no_such_phjax_option"):
+                f(x)
+        assert _jit._EXTRA_OPTIONS == {"xla_backend_optimization_level": 3}
+        float(f(x))
+        assert f._top is block and block._cache_size() == 1  # reused
+    assert _jit._EXTRA_OPTIONS == {}
+    float(f(x))
+    assert f._top is first and first._cache_size() == 1  # the first program again
 
 
 class _Scaled(eqx.Module):

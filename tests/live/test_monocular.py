@@ -91,6 +91,7 @@ def test_face_model_and_intrinsics():
         face_model(0.0)
 
 
+@pytest.mark.optimised
 #: measured on this video (24 frames, the head turning up to 52 deg):
 #: net (default, tracked box): relative rotation error median 2.0, max 12.4 deg; absolute
 #: 8-12 deg (the cartoon face's own "straight ahead" differs from a real face's); distance

@@ -602,6 +602,7 @@ def _rss_mb() -> float:
     return float("nan")
 
 
+@pytest.mark.optimised
 @pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="needs /proc (Linux)")
 @pytest.mark.slow
 def test_soak_one_hour_of_camera_frames(tmp_path):

@@ -202,6 +202,7 @@ def test_biwi_relative_pose_acceptance(biwi, detectors, backend):
     assert max(pos) < 1.5 * pos_max, pos
 
 
+@pytest.mark.optimised
 def test_synthetic_sequence_end_to_end_accuracy(detectors):
     """Acceptance: the package's rendered RGB-D head (exact ground truth, 60 frames at 30 Hz)
     through the front-end (OpenCV backend) and the causal 120 Hz stream against the ground
@@ -338,6 +339,7 @@ def test_config_validation():
         H.HeadPoseConfig(backend="dlib")
 
 
+@pytest.mark.optimised
 # -------------------------------------------------------------------------- slambook pairs
 def test_slambook_relative_camera_poses():
     """Default rgbd_relative_pose (RANSAC + joint dense / reprojection refinement): all four
@@ -370,6 +372,7 @@ def _slambook_pair_errors(seq, i, rel):
             float(np.linalg.norm(rel.translation - t_true)))
 
 
+@pytest.mark.optimised
 def test_slambook_dense_refinement():
     """refine="icp": seed-independent on all four pairs; 1-2, 2-3, 4-5 within 3 deg / 5 cm;
     refine="joint" (seed 0): the same, 3-4 closer to the given pose than "icp".
