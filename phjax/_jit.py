@@ -32,8 +32,8 @@ except ImportError:  # pragma: no cover - depends on the JAX version
     def _top_level() -> bool:
         return not isinstance(jax.numpy.zeros(()), jax.core.Tracer)
 
-__all__ = ["COMPILER_OPTIONS", "FAST_COMPILER_OPTIONS", "Tiered", "extra_compiler_options", "filter_jit",
-           "jit"]
+__all__ = ["COMPILER_OPTIONS", "FAST_COMPILER_OPTIONS", "Tiered", "extra_compiler_options",
+           "filter_jit", "jit"]
 
 #: XLA options of every program phjax compiles (see the module docs)
 COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
@@ -80,7 +80,7 @@ class _Jitted:
 
     @property
     def _top(self):
-        key = tuple(sorted(_EXTRA_OPTIONS.items()))
+        key = tuple(sorted(_EXTRA_OPTIONS.items())) if _EXTRA_OPTIONS else ()
         top = self._top_jits.get(key)
         if top is None:
             options = ({**COMPILER_OPTIONS, **_EXTRA_OPTIONS} if jax.default_backend() == "cpu"

@@ -153,7 +153,8 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
-#: the marker of run-time-heavy tests that compile at XLA's default level (see _optimised)
+#: the marker of run-time-heavy tests that compile at XLA's default level
+#: (see pytest_runtest_protocol)
 OPTIMISED = "optimised"
 
 

@@ -43,9 +43,9 @@ def test_extra_compiler_options_compile_their_own_program():
         assert float(f(x)) == pytest.approx(base, rel=1e-12)
         block = f._top
         assert block is not first and block._cache_size() == 1  # a program of its own
-        with _jit.extra_compiler_options(xla_no_such_phjax_option=True):
-            with pytest.raises(Exception, match="xla_no_such_phjax_option"):
-                f(x)
+        with (_jit.extra_compiler_options(xla_no_such_phjax_option=True),
+              pytest.raises(Exception, match="xla_no_such_phjax_option")):
+            f(x)
         assert _jit._EXTRA_OPTIONS == {"xla_backend_optimization_level": 3}
         float(f(x))
         assert f._top is block and block._cache_size() == 1  # reused
