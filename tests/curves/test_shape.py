@@ -266,8 +266,8 @@ def test_infeasible_bounds_give_the_least_violating_curve(bounded):
                                / kmax[bad] - 1, rtol=1e-12)
 
 
-@pytest.mark.optimised
 # ------------------------------------------------------------------------- gradients
+@pytest.mark.optimised
 def test_gradients_are_implicit_function_derivatives(bounded):
     """Reverse-mode gradients of the optimal value and of a projection of the optimal curve
     (through the implicit-function derivative of the angles: plain, bordered KKT with an active

@@ -339,8 +339,8 @@ def test_config_validation():
         H.HeadPoseConfig(backend="dlib")
 
 
-@pytest.mark.optimised
 # -------------------------------------------------------------------------- slambook pairs
+@pytest.mark.optimised
 def test_slambook_relative_camera_poses():
     """Default rgbd_relative_pose (RANSAC + joint dense / reprojection refinement): all four
     consecutive pairs within 3 deg and 5 cm of the given poses, the same pose for every RANSAC
