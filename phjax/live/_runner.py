@@ -27,11 +27,10 @@ Late measurements. A camera frame taken at ``t_c`` reaches the tracker at ``t_a 
 filter with the measurement at its true time ``t_c`` but starts the new render segment at
 ``t_a`` from the pose being rendered then (a plain update at ``t_c`` would start the segment in
 the past, so the correction it applies over the elapsed ``t_a - t_c`` would appear at once as
-a jump). It calls the tracker's own update at ``t_a`` with the filter's prediction as the
-measurement (zero innovation: the render segment is built from the unchanged prediction) and
-then puts back the filter's posterior at ``t_c``, so no information is counted twice and the
-next measurement is filtered at its own capture time. The first measurement is a plain update
-(nothing has been rendered before it).
+a jump). It is the tracker's own update with the render segment's start moved to ``t_a``: the
+segment is built from the posterior at ``t_c`` predicted forward, and that posterior is the
+filter's new state, so the next measurement is filtered at its own capture time. The first
+measurement is a plain update (nothing has been rendered before it).
 
 Adaptive settling. When measurements arrive less often than the tracker's ``horizon`` (a slow
 front-end), a correction applied within ``horizon`` would be a visible step. With
@@ -76,15 +75,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._jit import Tiered
 from .._np_quat import np_qconj, np_qmul
 from ..tracking.kalman import KalmanConfig
-from ..tracking.stream import TrackerStream, _on_leaves
-from ..tracking.tracker import (
-    TrackerConfig,
-    _filter_predict,
-    _filter_step,
-    tracker_update,
-)
+from ..tracking.stream import TrackerStream, _on_leaves, _tiered_on_leaves
+from ..tracking.tracker import TrackerConfig, _update
 from ._clock import RealClock, VirtualClock
 from ._outputs import Output, TumLog, open_output
 from ._sources import Measurement, Source, open_source
@@ -106,36 +101,40 @@ _MEAS_NOISE_FIELDS = ("pos_meas_noise", "rot_meas_noise")
 # ------------------------------------------------------------------------------- stream
 def _late_update(config: TrackerConfig, state, t_meas, t_now, position, quaternion):
     """Filter at the capture time ``t_meas``, render segment from ``t_now`` (module docs)."""
-    fresh = ~state.filter.initialized
-    kf, info = _filter_step(config, state.filter, t_meas, position, quaternion)
-    used = info.pos_used | info.rot_used
-    t_now = jnp.maximum(jnp.asarray(t_now, kf.t.dtype), kf.t)
-    p_now, q_now, _, _ = _filter_predict(config, kf, t_now)
-    seeded = eqx.tree_at(lambda s: s.filter, state, kf)
-    choose = lambda c, a, b: jax.tree.map(lambda x, y: jnp.where(c, x, y), a, b)
-    # first measurement: a plain update (nothing was rendered before, no jump to avoid);
-    # afterwards the zero-innovation update at t_now from the filter at t_meas
-    out = tracker_update(config, choose(fresh, state, seeded), jnp.where(fresh, t_meas, t_now),
-                         jnp.where(fresh, position, p_now), jnp.where(fresh, quaternion, q_now))
-    out = eqx.tree_at(lambda s: s.filter, out, choose(fresh, out.filter, kf))
-    return choose(fresh | used, out, seeded)
+    return _update(config, state, t_meas, position, quaternion, t_now)
 
 
 class LiveStream(TrackerStream):
     """:class:`phjax.tracking.TrackerStream` with late measurements and a settable config.
 
-    Arguments: as :class:`phjax.tracking.TrackerStream`.
+    Arguments: as :class:`phjax.tracking.TrackerStream` (``fast_start`` applies to
+    :meth:`update_late`, the update a live run uses).
     """
 
-    def __init__(self, config: TrackerConfig | None = None, t: float = 0.0, dtype=None):
+    def __init__(self, config: TrackerConfig | None = None, t: float = 0.0, dtype=None,
+                 fast_start: bool = True):
         if dtype is None:
             dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
-        super().__init__(config, t, dtype)
+        super().__init__(config, t, dtype, fast_start)
+
+    def wait_compiled(self, timeout: float | None = None) -> bool:
+        """Wait until :meth:`update_late` runs the optimised program (see ``fast_start``).
+
+        Arguments:
+            timeout: the longest wait, s (default: until it is ready).
+
+        Returns:
+            Whether late updates now run the optimised program.
+        """
+        return self._late.wait(timeout) if isinstance(self._late, Tiered) else True
 
     def set_config(self, config: TrackerConfig) -> None:
         """Use another config of the same structure (no recompilation)."""
         super().set_config(config)
-        self._late = _on_leaves(_late_update, self._config_def, self._state_def)
+        self._late = (_tiered_on_leaves(_late_update, self._config_def, self._state_def,
+                                        self.dtype)
+                      if self._fast_start else
+                      _on_leaves(_late_update, self._config_def, self._state_def))
         paths = jax.tree_util.tree_flatten_with_path(config)[0]
         self._noise_leaves = [i for i, (path, _) in enumerate(paths)
                               if getattr(path[-1], "name", None) in _MEAS_NOISE_FIELDS]

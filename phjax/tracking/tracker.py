@@ -395,7 +395,11 @@ def _settle(s):
     return (1 + s) * e, -s * e, s * e, (1 - s) * e
 
 
-def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion):
+def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion, t_render=None):
+    """:func:`tracker_update`; ``t_render`` (default ``t``): the time the new render segment
+    starts, later than ``t`` for a measurement that arrives late (``phjax.live.LiveStream``).
+    The filter runs at ``t`` and the segment is built from its predictions; the first
+    measurement starts its segment at ``t`` (nothing was rendered before it)."""
     # shapes are static: checked once per compilation, not per call
     for name, x, shape in (("t", t, ()), ("position", position, (3,)), ("quaternion", quaternion, (4,))):
         if jnp.shape(x) != shape:
@@ -405,9 +409,13 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion)
     position = jnp.asarray(position, dtype)
     quaternion = jnp.asarray(quaternion, dtype)
     was_init = state.filter.initialized
-    p_r, v_r, q_r, w_r = state.segment.evaluate(t)  # the pose shown at t
+    if t_render is not None:
+        t_render = jnp.where(was_init, jnp.maximum(jnp.asarray(t_render, dtype), t), t)
+    else:
+        t_render = t
+    p_r, v_r, q_r, w_r = state.segment.evaluate(t_render)  # the pose shown at t_render
     kf, info = _filter_step(config, state.filter, t, position, quaternion)
-    u = t + jnp.asarray(config.lookahead, dtype)  # the display time of the pose shown at t
+    u = t_render + jnp.asarray(config.lookahead, dtype)  # the display time of that pose
     used = info.pos_used | info.rot_used
     h = jnp.asarray(config.horizon, dtype) * _adaptive_factor(config, kf, dtype)
     tc = _SETTLE * h  # time constant of the correction

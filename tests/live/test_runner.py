@@ -48,6 +48,7 @@ def test_late_update_is_continuous_and_filters_at_capture_time():
     t, p, q = smooth_motion(40, 30.0, seed=3)
     cfg = live_tracker_config()  # the runner's config: its compiled update is reused below
     late = LiveStream(cfg)
+    on_time = LiveStream(cfg)  # arrives when taken: the tracker's own update
     plain = TrackerStream(cfg, dtype=late.dtype)
     latency = 0.1
     jumps_late, jumps_plain = [], []
@@ -56,7 +57,10 @@ def test_late_update_is_continuous_and_filters_at_capture_time():
         before_l = np.asarray(late.sample(t_now)[0])
         before_p = np.asarray(plain.sample(t_now)[0])
         late.update_late(t[i], t_now, p[i], q[i])
+        on_time.update_late(t[i], t[i], p[i], q[i])
         plain.update(t[i], p[i], q[i])
+        for a, b in zip(on_time.sample(t_now), plain.sample(t_now)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)
         if i > 3:
             jumps_late.append(np.linalg.norm(np.asarray(late.sample(t_now)[0]) - before_l))
             jumps_plain.append(np.linalg.norm(np.asarray(plain.sample(t_now)[0]) - before_p))
@@ -66,6 +70,36 @@ def test_late_update_is_continuous_and_filters_at_capture_time():
                                    np.asarray(plain.state.filter.x), atol=1e-9)
     assert max(jumps_late) < 1e-9
     assert max(jumps_plain) > 1e-5
+
+
+def test_fast_start_late_updates_equal_the_optimised_ones(monkeypatch):
+    """``fast_start``: the first late update runs the -O0 program and the optimised one takes
+    over when its background compilation ends, with the same stream (float32 rounding). (The
+    suite compiles everything at -O0, where tiering is off: forced on here.)"""
+    import jax.numpy as jnp
+
+    from phjax import _jit
+    from phjax.tracking import stream as stream_mod
+
+    monkeypatch.setattr(_jit, "_tiering_pays", lambda: True)
+    stream_mod._tiered_on_leaves.cache_clear()  # not a program made with tiering off
+    try:
+        t, p, q = smooth_motion(12, 30.0, seed=2)
+        cfg = live_tracker_config()
+        a = LiveStream(cfg, dtype=jnp.float32)
+        b = LiveStream(cfg, dtype=jnp.float32, fast_start=False)
+        assert b.wait_compiled() and a._late._program is None
+        for i in range(12):
+            a.update_late(t[i], t[i] + 0.05, p[i], q[i])
+            b.update_late(t[i], t[i] + 0.05, p[i], q[i])
+            if i == 0:
+                assert a._late._program is not a._late._jitted  # the fast program
+            if i == 6:
+                assert a.wait_compiled(120) and a._late.error is None
+            for x, y in zip(a.sample(t[i] + 0.06), b.sample(t[i] + 0.06)):
+                np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=2e-5, atol=2e-5)
+    finally:
+        stream_mod._tiered_on_leaves.cache_clear()
 
 
 def _run(source, rate, duration=None, **kw):
