@@ -31,7 +31,11 @@ was tried first: it converges quadratically on smooth data (helix) but wanders o
 data (no globalisation), while the augmented Lagrangian reaches the same optimum on the helix and
 converges on both. The start is the C1 Hermite PH chain with Catmull-Rom derivatives (``Z_k`` =
 its middle coefficients, each segment's common phase aligned with its predecessor at the joint).
-Data are scaled to unit mean chord first. Jacobians are dense
+Data are scaled to unit mean chord first. The equations are written as quadratic forms
+(``a i b*`` is a bilinear form with a constant ``3 x 4 x 4`` matrix, the displacement of a
+segment one contraction over its stacked coefficients): the solver differentiates them in every
+step, and the component-wise products traced about 3.5 x longer and compiled about 3 x longer
+(``docs/results.md``). Jacobians are dense
 (``O(N^2)`` memory, ``O(N^3)`` per step): intended for windows of up to a few hundred points
 (chain clamped windows for long recordings, as ``experiments/c2_spline.py`` does).
 """
@@ -50,7 +54,8 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._misc import safe_norm
-from .ph_quintic import PHQuintic, _from_coefficients, _sandwich_i, _sym_i, hermite_quintic
+from .._np_quat import np_qconj, np_qmul
+from .ph_quintic import PHQuintic, _from_coefficients, hermite_quintic
 
 __all__ = ["SplineStatus", "SplineSolution", "ph_spline"]
 
@@ -103,11 +108,35 @@ def _coefficients(Z):
     return (Z[:-2] + Z[1:-1]) / 2, Z[1:-1], (Z[1:-1] + Z[2:]) / 2
 
 
+@functools.cache
+def _sandwich_matrix() -> np.ndarray:
+    """``M[j, p, q]``: component ``j`` of the vector part of ``e_p i e_q*`` (``wxyz`` basis
+    quaternions ``e``): ``a i b* = einsum("p,jpq,q->j", a, M, b)``, a bilinear form."""
+    e = np.eye(4)
+    prod = np_qmul(np_qmul(e[:, None], np.array([0.0, 1.0, 0.0, 0.0])), np_qconj(e[None, :]))
+    return np.moveaxis(prod[..., 1:], -1, 0)  # (3, 4, 4), entries 0 and +-1
+
+
+#: weights of ``a i b*`` for the Bernstein coefficient pairs ``(A_m, A_n)`` in
+#: ``int_0^1 A i A* dt``: the hodograph's Bernstein coefficients
+#: ``A0 i A0*, (A0 i A1* + A1 i A0*) / 2, (A0 i A2* + 4 A1 i A1* + A2 i A0*) / 6, ...``
+#: summed and divided by 5
+_DISPLACEMENT_WEIGHTS = np.array([[1.0, 1 / 2, 1 / 6], [1 / 2, 2 / 3, 1 / 2], [1 / 6, 1 / 2, 1.0]]) / 5
+
+
+def _sandwich(a, b):
+    """Vector part of ``a i b*`` as one contraction (a few traced operations where the
+    component form takes dozens: the solver differentiates it many times)."""
+    return jnp.einsum("...p,jpq,...q->...j", a, jnp.asarray(_sandwich_matrix(), a.dtype), b)
+
+
 def _displacement(A0, A1, A2):
-    """``int_0^1 A i A* dt`` = sum of the hodograph's Bernstein coefficients / 5."""
-    h = (_sandwich_i(A0, A0) + _sym_i(A0, A1) / 2 + (_sym_i(A0, A2) + 4 * _sandwich_i(A1, A1)) / 6
-         + _sym_i(A1, A2) / 2 + _sandwich_i(A2, A2))
-    return h / 5
+    """``int_0^1 A i A* dt`` = sum of the hodograph's Bernstein coefficients / 5, as one
+    quadratic form in the stacked coefficients (as :func:`_sandwich`)."""
+    A = jnp.stack([A0, A1, A2], -2)  # (..., 3, 4)
+    W = jnp.asarray(_DISPLACEMENT_WEIGHTS, A.dtype)
+    return jnp.einsum("...mp,mn,jpq,...nq->...j", A, W,
+                      jnp.asarray(_sandwich_matrix(), A.dtype), A)
 
 
 def _fairness(Z):
@@ -162,9 +191,9 @@ def _constraints(Z, dp, ds, de, Z0, clamp_start, clamp_end):
     A0, A1, A2 = _coefficients(Z)
     parts = [(_displacement(A0, A1, A2) - dp).reshape(-1)]
     if clamp_start:
-        parts.append(_sandwich_i(A0[0], A0[0]) - ds)
+        parts.append(_sandwich(A0[0], A0[0]) - ds)
     if clamp_end:
-        parts.append(_sandwich_i(A2[-1], A2[-1]) - de)
+        parts.append(_sandwich(A2[-1], A2[-1]) - de)
     parts.append(jnp.sum((Z - Z0) * _times_i(Z0))[None])
     return jnp.concatenate(parts)
 

@@ -44,6 +44,29 @@ def check_spline(curves, sol, pts, tol=1e-11, fairest=True):
     assert jp <= tol * scale and jd <= tol * scale * 10 and ja <= tol * scale * 100
 
 
+def test_displacement_is_the_integral_of_the_hodograph():
+    """The solver's quadratic form (one contraction) against Gauss-Legendre quadrature of
+    ``A(t) i A(t)*`` built from quaternion products, for random Bernstein coefficients."""
+    from phjax.curves.ph_spline import _displacement, _sandwich
+    from phjax.quaternion import quat_conj, quat_mul
+
+    rng = np.random.default_rng(4)
+    A0, A1, A2 = (jnp.asarray(rng.normal(size=(5, 4))) for _ in range(3))
+    i = jnp.asarray([0.0, 1.0, 0.0, 0.0])
+    x, w = np.polynomial.legendre.leggauss(4)  # exact for the quartic integrand
+    t = (x + 1) / 2
+    A = ((1 - t)[:, None, None] ** 2 * A0 + 2 * (t * (1 - t))[:, None, None] * A1
+         + t[:, None, None] ** 2 * A2)  # (4, 5, 4)
+    h = quat_mul(quat_mul(A, i), quat_conj(A))
+    np.testing.assert_allclose(np.asarray(h[..., 0]), 0, atol=1e-12)
+    ref = np.einsum("k,knj->nj", w / 2, np.asarray(h[..., 1:]))
+    np.testing.assert_allclose(np.asarray(_displacement(A0, A1, A2)), ref, rtol=1e-12, atol=1e-12)
+    ab = quat_mul(quat_mul(A0, i), quat_conj(A1))
+    np.testing.assert_allclose(np.asarray(_sandwich(A0, A1)), np.asarray(ab[..., 1:]), atol=1e-12)
+    assert _displacement(A0.astype(jnp.float32), A1.astype(jnp.float32),
+                         A2.astype(jnp.float32)).dtype == jnp.float32
+
+
 def test_helix_clamped_interpolates_c2_and_converges():
     devs = []
     for h in (0.4, 0.2, 0.1):
