@@ -50,6 +50,7 @@ _normalize_fb = comps(lambda a, fb: C.normalize(a, fallback=fb))
 _perp = comps(C.unit_perpendicular)
 _qexp = comps(C.qexp)
 _qlog = comps(C.qlog)
+_unit_fibre = comps(ph_quintic._unit_fibre)
 
 
 def _pure(v):
@@ -177,22 +178,25 @@ def test_unit_fibre_rotates_u_onto_xhat_on_both_branches(x, u, m_seed):
     xhat = unit(x, -u)  # the antiparallel case (second branch) included
     xhat[0] = -u[0]
     m = np.asarray(unit_perpendicular(u))
-    q = jax.jit(lambda a, b, c: C.stack(ph_quintic._unit_fibre(C.split(a), C.split(b),
-                                                              C.split(c))))(xhat, u, m)
+    q = _unit_fibre(xhat, u, m)
     close(np.linalg.norm(q, axis=-1), 1.0, atol=1e-13)
     close(Q.quat_rotate(q, u), xhat, atol=1e-13)
+
+
+@jax.jit
+def _fibre_check(p0, p1, d0, d1, x, axis):
+    """``fib(x) i fib(x)*`` in the frame built from the data (``axis=None``) or a given axis
+    (module level: one program per axis kind for all examples, not one per example)."""
+    _, _, _, _, frame = ph_quintic._prepare(p0, p1, d0, d1, axis)
+    a = frame.fib(x, jnp.zeros(x.shape[:-1]))
+    return ph_quintic._sandwich_i(a, a)
 
 
 @given(vecs, vecs, vecs, vecs)
 def test_fibre_map_solves_the_pythagorean_equation(p0, p1, d0, d1):
     """``fib(x) i fib(x)* = x`` in every frame the construction builds (data-driven and a
     given axis), for the data's own vectors and zero."""
-    def check(p0, p1, d0, d1, x, axis):
-        _, _, _, _, frame = ph_quintic._prepare(p0, p1, d0, d1, axis)
-        a = frame.fib(x, jnp.zeros(x.shape[:-1]))
-        return ph_quintic._sandwich_i(a, a)
-
-    check = jax.jit(check)
+    check = _fibre_check
     for x in (d0, d1 - p0, np.zeros_like(d0)):
         close(check(p0, p1, d0, d1, x, None), x, atol=1e-12)
         close(check(p0, p1, d0, d1, x, jnp.array([0.3, -1.0, 0.2])), x, atol=1e-12)
