@@ -140,6 +140,21 @@ def test_notebook_runs(nb, tmp_path, monkeypatch):
     _ = os
 
 
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="needs CPU affinity (Linux)")
+def test_xdist_workers_get_their_own_cores(monkeypatch):
+    """tests/conftest.py gives each xdist worker an equal, disjoint share of the controller's
+    cores (XLA:CPU's thread pools follow the affinity); outside xdist nothing is pinned."""
+    from conftest import _pin_xdist_worker
+
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+    mine, parent = os.sched_getaffinity(0), os.sched_getaffinity(os.getppid())
+    if os.environ.get("PYTEST_XDIST_WORKER") and 2 <= count <= len(parent):
+        assert mine <= parent and len(mine) == len(parent) // count
+    monkeypatch.delenv("PYTEST_XDIST_WORKER", raising=False)
+    _pin_xdist_worker()
+    assert os.sched_getaffinity(0) == mine
+
+
 def test_test_config_reruns_worker_crashes_only(tmp_path):
     """The repository's pytest options (pyproject.toml) re-run a test once when a native crash
     kills its xdist worker or when it hangs past the timeout, and never re-run a failing
