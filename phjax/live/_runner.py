@@ -75,10 +75,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._jit import Tiered
 from .._np_quat import np_qconj, np_qmul
 from ..tracking.kalman import KalmanConfig
-from ..tracking.stream import TrackerStream, _on_leaves, _tiered_on_leaves
+from ..tracking.stream import TrackerStream, _wait_optimised
 from ..tracking.tracker import TrackerConfig, _update
 from ._clock import RealClock, VirtualClock
 from ._outputs import Output, TumLog, open_output
@@ -126,15 +125,12 @@ class LiveStream(TrackerStream):
         Returns:
             Whether late updates now run the optimised program.
         """
-        return self._late.wait(timeout) if isinstance(self._late, Tiered) else True
+        return _wait_optimised(self._late, timeout)
 
     def set_config(self, config: TrackerConfig) -> None:
         """Use another config of the same structure (no recompilation)."""
         super().set_config(config)
-        self._late = (_tiered_on_leaves(_late_update, self._config_def, self._state_def,
-                                        self.dtype)
-                      if self._fast_start else
-                      _on_leaves(_late_update, self._config_def, self._state_def))
+        self._late = self._program(_late_update)
         paths = jax.tree_util.tree_flatten_with_path(config)[0]
         self._noise_leaves = [i for i, (path, _) in enumerate(paths)
                               if getattr(path[-1], "name", None) in _MEAS_NOISE_FIELDS]

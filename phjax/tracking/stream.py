@@ -64,6 +64,12 @@ def _tiered_on_leaves(fn, config_def, state_def, dtype):
     return Tiered(_on_leaves(fn, config_def, state_def))
 
 
+def _wait_optimised(program, timeout: float | None) -> bool:
+    """Wait for a :class:`~phjax._jit.Tiered` program's optimised compilation (``True`` at
+    once for a plain jitted one); returns whether it runs the optimised program."""
+    return program.wait(timeout) if isinstance(program, Tiered) else True
+
+
 @functools.cache
 def _sample_on_leaves(segment_def):
     """``jit(_sample)`` on the flat leaf list of a render segment."""
@@ -111,12 +117,17 @@ class TrackerStream:
 
     def set_config(self, config: TrackerConfig) -> None:
         """Use another config (one of the same structure does not recompile)."""
-        leaves, config_def = jax.tree.flatten(tracker_config_arrays(config, self.dtype))
-        self._update = (_tiered_on_leaves(_update, config_def, self._state_def, self.dtype)
-                        if self._fast_start else _on_leaves(_update, config_def, self._state_def))
-        self._config_def = config_def
+        leaves, self._config_def = jax.tree.flatten(tracker_config_arrays(config, self.dtype))
+        self._update = self._program(_update)
         self._config_leaves = leaves
         self.config = config
+
+    def _program(self, fn):
+        """``fn(config, state, *args)`` jitted on this stream's leaf lists, compiled fast first
+        when ``fast_start`` is on (:class:`phjax._jit.Tiered`)."""
+        if self._fast_start:
+            return _tiered_on_leaves(fn, self._config_def, self._state_def, self.dtype)
+        return _on_leaves(fn, self._config_def, self._state_def)
 
     @property
     def state(self) -> TrackerState:
@@ -154,9 +165,7 @@ class TrackerStream:
             Whether updates now run the optimised program (``True`` before the first update
             only when ``fast_start`` is off).
         """
-        if isinstance(self._update, Tiered):
-            return self._update.wait(timeout)
-        return True
+        return _wait_optimised(self._update, timeout)
 
     def sample(self, t_render: Float[ArrayLike, "*T"]) -> tuple[Float[Array, "*T 3"], Float[Array, "*T 4"]]:
         """Rendered pose at render time(s) ``t_render`` (as :func:`phjax.tracker_sample`).
