@@ -225,12 +225,19 @@ def bounded(rnd, rnd_opt):
     one = jnp.ones((), jnp.float64)
     grads = [vjp((one, 0 * one)), vjp((0 * one, one))]  # value part, curve part
 
-    def value(*a):  # the same (already compiled) program, primal outputs only
-        return [float(v) for v in jax.vjp(parts, *a, has_aux=True)[0]]
+    def lanes(p0, p1, d0, d1, km, wl):
+        """Per segment, the optimal value and the curve projection of ``parts`` for a batch of
+        N independent problems (each lane its own data, bound and weights), by the same
+        compiled program (primal outputs of the same ``jax.vjp``)."""
+        def f(p0, d1, km):
+            curve, sol = optimize_shape(p0, p1, d0, d1, kappa_max=km, max_steps=64,
+                                        rtol=1e-10, atol=1e-13)
+            return sol.objective, jnp.sum(wl * curve.control_points, (-2, -1)) / 10
+        return [np.asarray(v) for v in jax.vjp(f, p0, d1, km)[0]]
 
     _, ref = grid_search_shape(*data, kappa_max=kmax)
     return {"kmax": kmax, "curve": curve, "sol": sol, "ref": ref, "k_min": k_min, "data": data,
-            "value": value, "args": args, "grads": grads}
+            "lanes": lanes, "w": w, "args": args, "grads": grads}
 
 
 def test_bounds_hold_where_the_grid_finds_them_feasible(bounded):
@@ -273,7 +280,7 @@ def test_gradients_are_implicit_function_derivatives(bounded):
     (through the implicit-function derivative of the angles: plain, bordered KKT with an active
     bound, and of the least violation) with respect to end points, end derivatives and the bound,
     against central differences of re-solved optima; finite at the degenerate segments."""
-    grads, value, args = bounded["grads"], bounded["value"], bounded["args"]
+    grads, args, data, w = (bounded[k] for k in ("grads", "args", "data", "w"))
     for g in jax.tree.leaves(grads):
         assert np.all(np.isfinite(np.asarray(g)))
     # (argument, index, value tolerance, curve tolerance): inactive bound (plain implicit
@@ -283,18 +290,32 @@ def test_gradients_are_implicit_function_derivatives(bounded):
     # infeasible bound (least violation): both approximate in the same way
     cases = [(1, (18, 1), 1e-5, 1e-5), (0, (0, 0), 1e-4, 1e-2), (2, (2,), 1e-4, 1e-2),
              (0, (26, 2), 1e-2, 1e-2)]
+    # The segments are independent lanes of one batched solve, so every re-solved optimum the
+    # central differences need (4 cases x 2 parts x 2 signs) is a lane of a single call: lane
+    # j holds a copy of the perturbed segment. The value (strongly curved in the data) with a
+    # small step; the curve, whose quotient needs re-solved angles far above the solver
+    # tolerance, with a larger one.
+    lane_args, lane_seg, checks = [[], [], []], [], []
     for arg, idx, value_tol, curve_tol in cases:
-        # the value (strongly curved in the data) with a small step; the curve, whose quotient
-        # needs re-solved angles far above the solver tolerance, with a larger one
+        seg = idx[0]
         for part, rel_h, tol in ((0, 1e-5, value_tol), (1, 1e-3, curve_tol)):
             h = rel_h * (abs(float(args[arg][idx])) if arg == 2 else 1.0)
-            plus, minus = [np.array(a, copy=True) for a in args], [np.array(a, copy=True)
-                                                                  for a in args]
-            plus[arg][idx] += h
-            minus[arg][idx] -= h
-            fd = (value(*plus)[part] - value(*minus)[part]) / (2 * h)
-            got = float(grads[part][arg][idx])
-            assert abs(got - fd) <= tol * (1 + abs(fd)), (arg, idx, part, got, fd)
+            checks.append((arg, idx, part, h, tol, len(lane_seg)))
+            for sign in (1.0, -1.0):
+                lane = [np.array(a[seg], copy=True) for a in args]
+                lane[arg][idx[1:]] += sign * h
+                for k in range(3):
+                    lane_args[k].append(lane[k])
+                lane_seg.append(seg)
+    assert len(lane_seg) <= N
+    pad = N - len(lane_seg)  # unused lanes: copies of the first problem
+    seg = np.array(lane_seg + [lane_seg[0]] * pad)
+    p0, d1, km = (np.stack(a + [a[0]] * pad) for a in lane_args)
+    values = bounded["lanes"](p0, data[1][seg], data[2][seg], d1, km, w[seg])
+    for arg, idx, part, h, tol, j in checks:
+        fd = (values[part][j] - values[part][j + 1]) / (2 * h)
+        got = float(grads[part][arg][idx])
+        assert abs(got - fd) <= tol * (1 + abs(fd)), (arg, idx, part, got, fd)
 
 
 # --------------------------------------------------------------- objectives, dtypes, API
