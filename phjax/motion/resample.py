@@ -14,6 +14,7 @@ NaN.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
@@ -21,6 +22,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._jit import jit
 from .._misc import safe_div
+from .._sizes import MIN_FRAMES, MIN_RENDER, size_class
 from ..quaternion import quat_conj, quat_mul, quat_normalize, quat_slerp, quat_to_rotvec
 
 __all__ = ["interpolate_poses", "finite_difference_velocities", "snap_to_frames", "valid_rows"]
@@ -107,7 +109,6 @@ def _interp_weights(times, valid, k, query, max_gap):
     return i0, i1, s, ok
 
 
-@jit
 def interpolate_poses(
     times: Float[ArrayLike, " n"],
     positions: Float[ArrayLike, "n 3"],
@@ -117,6 +118,11 @@ def interpolate_poses(
     max_gap: float | Float[ArrayLike, ""] | None = None,
 ) -> tuple[Float[Array, "m 3"], Float[Array, "m 4"]]:
     """Linear position and slerp orientation interpolation at ``query_times``.
+
+    Jitted. Called with concrete arrays (not inside ``jit``, ``vmap`` or ``grad``), the samples
+    and the queries are padded to their size classes (:mod:`phjax._sizes`: the next power of
+    two) so that inputs of other lengths reuse the compiled program; padding never changes a
+    result (padded samples are invalid rows at the last time, padded queries are dropped).
 
     Arguments:
         times: measurement times, finite and non-decreasing.
@@ -133,16 +139,60 @@ def interpolate_poses(
         valid sample are clamped to that end pose (no extrapolation). A channel with no valid
         sample at all gives NaN.
     """
+    shapes = [np.shape(x) for x in (times, positions, quaternions, query_times)]
+    n = shapes[0][0] if len(shapes[0]) == 1 else -1
+    if n < 1 or shapes[1] != (n, 3) or shapes[2] != (n, 4) or len(shapes[3]) != 1:
+        raise ValueError(
+            "expected times (n,), positions (n, 3), quaternions (n, 4) with n >= 1 and 1-D "
+            f"query_times; got {shapes[0]}, {shapes[1]}, {shapes[2]}, {shapes[3]}"
+        )
+    padded = pad_samples(times, positions, quaternions, query_times, max_gap)
+    if padded is None:  # traced (or not floating point): the caller's shapes
+        return _interpolate_poses(times, positions, quaternions, query_times, max_gap)
+    m = shapes[3][0]
+    p, q = _interpolate_poses(*padded, max_gap)
+    return unpad_rows(p, m), unpad_rows(q, m)
+
+
+def unpad_rows(x: Array, m: int) -> Array:
+    """The first ``m`` rows of a result computed on padded inputs (sliced on the host and put
+    back with ``device_put``: a slice of a JAX array, or ``jnp.asarray`` of a NumPy array,
+    compiles a small program for every length)."""
+    return jax.device_put(np.asarray(x)[:m])
+
+
+def pad_samples(times, positions, quaternions, query_times, *others):
+    """Samples and queries padded to their size classes, as NumPy arrays (``None`` when any
+    argument, ``others`` included, is traced or an array is not floating point).
+
+    Padded samples repeat the last time with NaN position and orientation (invalid rows after
+    every real one: no query sees them); padded queries are the first sample time (their
+    results are to be dropped). See :func:`interpolate_poses`.
+
+    Returns:
+        ``(times (nb,), positions (nb, 3), quaternions (nb, 4), query_times (mb,))`` or ``None``.
+    """
+    if any(isinstance(x, jax.core.Tracer) for x in (times, positions, quaternions, query_times,
+                                                     *others)):
+        return None
+    t, p, q, r = (np.asarray(x) for x in (times, positions, quaternions, query_times))
+    if not all(np.issubdtype(x.dtype, np.floating) for x in (t, p, q, r)):
+        return None
+    n, m = t.shape[0], r.shape[0]
+    dn, dm = size_class(n, MIN_FRAMES) - n, size_class(m, MIN_RENDER) - m
+    return (np.concatenate([t, np.full(dn, t[-1], t.dtype)]),
+            np.concatenate([p, np.full((dn, 3), np.nan, p.dtype)]),
+            np.concatenate([q, np.full((dn, 4), np.nan, q.dtype)]),
+            np.concatenate([r, np.full(dm, t[0], r.dtype)]))
+
+
+@jit
+def _interpolate_poses(times, positions, quaternions, query_times, max_gap):
+    """:func:`interpolate_poses` on arrays of any (checked) shape, jitted."""
     times = jnp.asarray(times)
     positions = jnp.asarray(positions)
     quaternions = jnp.asarray(quaternions)
     query = jnp.asarray(query_times)
-    n = times.shape[0]
-    if n == 0 or positions.shape != (n, 3) or quaternions.shape != (n, 4) or query.ndim != 1:
-        raise ValueError(
-            "expected times (n,), positions (n, 3), quaternions (n, 4) with n >= 1 and 1-D "
-            f"query_times; got {times.shape}, {positions.shape}, {quaternions.shape}, {query.shape}"
-        )
     k = jnp.searchsorted(times, query, side="right") - 1
 
     vp = valid_rows(positions)

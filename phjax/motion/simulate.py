@@ -12,11 +12,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .._jit import jit
 from .._np_quat import np_from_rotvec as _np_from_rotvec
 from .._np_quat import np_qconj as _np_qconj
 from .._np_quat import np_qmul as _np_qmul
+from .._sizes import MIN_RENDER, size_class
 from ..quaternion import quat_from_rotvec, quat_mul
-from .resample import interpolate_poses
+from .resample import interpolate_poses, pad_samples, unpad_rows
 
 __all__ = ["SensorModel", "simulate_measurements", "synthetic_head_motion"]
 
@@ -68,7 +70,9 @@ def simulate_measurements(
     Orientation-only ground truth (NaN positions) gives NaN positions and noisy orientations.
     Deterministic for a given key / integer seed and dtype (JAX draws different samples in
     float32 and float64). Not ``jit``-able as a whole (the number of
-    samples depends on the ground-truth time range); the per-sample work is vectorised.
+    samples depends on the ground-truth time range); the per-sample work is one jitted program
+    per size class (:mod:`phjax._sizes`) of the ground truth and of the number of samples, so
+    recordings of other lengths reuse it.
 
     **Batches**: ground truth with leading batch axes ``B`` (``gt_times (*B, n)``), NaN-padded
     to a common length (padding rule of :mod:`phjax.batch`: NaN times are padding). Recording
@@ -102,8 +106,8 @@ def simulate_measurements(
         raise ValueError(f"dropout must be in [0, 1), got {model.dropout}")
     if min(float(model.sigma_p), float(model.sigma_r), jitter) < 0:
         raise ValueError("sigma_p, sigma_r and jitter must be non-negative")
-    gt_p = jnp.asarray(gt_positions)
-    gt_q = jnp.asarray(gt_quaternions)
+    # host arrays: jnp.asarray of a NumPy array compiles a small program for every shape
+    gt_p, gt_q = np.asarray(gt_positions), np.asarray(gt_quaternions)
     dtype = jnp.result_type(gt_p, gt_q, jnp.float32)
 
     t0, t1 = gt_t[0], gt_t[-1]
@@ -111,25 +115,35 @@ def simulate_measurements(
     k_jit, k_p, k_r, k_drop = jax.random.split(_as_key(key_or_seed), 4)
     period = 1.0 / rate
     sample_t = t0 + np.arange(m) * period
+    # One program per size class, not per length: the ground truth and the sampling instants
+    # are padded (pad_samples) and every random draw is made for the padded length. With JAX's
+    # partitionable Threefry (its default) a draw's first m values do not depend on its length,
+    # so the result equals the unpadded computation.
+    mb = size_class(m, MIN_RENDER)
     if jitter > 0:
-        offs = np.asarray(jax.random.normal(k_jit, (m,)), dtype=np.float64) * jitter
+        offs = np.asarray(jax.random.normal(k_jit, (mb,)), dtype=np.float64)[:m] * jitter
         sample_t = np.clip(sample_t + np.clip(offs, -0.45, 0.45) * period, t0, t1)
 
-    p_true, q_true = interpolate_poses(
-        jnp.asarray(gt_t, dtype),
-        gt_p.astype(dtype),
-        gt_q.astype(dtype),
-        jnp.asarray(sample_t, dtype),
-    )
-    p_meas = p_true + model.sigma_p * jax.random.normal(k_p, (m, 3), dtype)
-    noise = model.sigma_r * jax.random.normal(k_r, (m, 3), dtype)
+    gt = pad_samples(gt_t.astype(dtype), gt_p.astype(dtype), gt_q.astype(dtype),
+                     sample_t.astype(dtype))
+    p_meas, q_meas = _measure(*gt, k_p, k_r, k_drop, *(jnp.asarray(float(x), dtype) for x in (
+        model.sigma_p, model.sigma_r, model.dropout)))
+    times = jax.device_put(np.asarray(sample_t + float(model.latency), dtype))
+    return times, unpad_rows(p_meas, m), unpad_rows(q_meas, m)
+
+
+@jit
+def _measure(gt_t, gt_p, gt_q, sample_t, k_p, k_r, k_drop, sigma_p, sigma_r, dropout):
+    """The sensor at the sampling instants ``sample_t``: interpolated ground truth, noise and
+    dropouts (jitted; :func:`simulate_measurements` pads to size classes)."""
+    m, dtype = sample_t.shape[0], gt_p.dtype
+    p_true, q_true = interpolate_poses(gt_t, gt_p, gt_q, sample_t)
+    p_meas = p_true + sigma_p * jax.random.normal(k_p, (m, 3), dtype)
+    noise = sigma_r * jax.random.normal(k_r, (m, 3), dtype)
     q_meas = quat_mul(quat_from_rotvec(noise), q_true)
-    lost = jax.random.uniform(k_drop, (m,), dtype) < model.dropout
+    lost = jax.random.uniform(k_drop, (m,), dtype) < dropout
     nan = jnp.asarray(jnp.nan, dtype)
-    p_meas = jnp.where(lost[:, None], nan, p_meas)
-    q_meas = jnp.where(lost[:, None], nan, q_meas)
-    times = jnp.asarray(sample_t + float(model.latency), dtype)
-    return times, p_meas, q_meas
+    return jnp.where(lost[:, None], nan, p_meas), jnp.where(lost[:, None], nan, q_meas)
 
 
 def _batch_keys(key_or_seed, batch: tuple[int, ...]) -> list:

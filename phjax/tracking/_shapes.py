@@ -20,23 +20,18 @@ from __future__ import annotations
 
 import numpy as np
 
+# the size classes themselves (shared with phjax.motion): MIN_FRAMES, MIN_RENDER, size_class
+from .._sizes import MIN_FRAMES, MIN_RENDER, size_class
+
 __all__ = ["MIN_FRAMES", "MIN_RENDER", "MAX_COMPILED_SHAPES", "bounded_cache", "pad_recording",
            "size_class"]
 
-#: smallest size classes (frames, render times): short recordings share one program
-MIN_FRAMES = 64
-MIN_RENDER = 256
 #: time step (s) between padding frames, after the last real frame and the last render time
 PAD_STEP = 1.0
 #: compiled versions (input shapes) kept per entry point, see :func:`bounded_cache`
 MAX_COMPILED_SHAPES = 4
 
 _COMPILED_KEYS: dict = {}
-
-
-def size_class(n: int, minimum: int) -> int:
-    """The size class of ``n`` items: the next power of two, at least ``minimum``."""
-    return max(int(minimum), 1 << max(int(n) - 1, 0).bit_length())
 
 
 def pad_recording(times, positions, quaternions, render_times, *, hold_end: bool = False):

@@ -194,3 +194,59 @@ def test_simulate_batch_equals_each_recording_alone():
     assert np.isnan(np.asarray(bt[0, 0])).sum() == 15  # 31 vs 46 samples at 30 Hz
     with pytest.raises(ValueError, match="key_or_seed"):
         simulate_measurements(np.array([1, 2, 3]), t, p, q, model)
+
+
+def test_lengths_in_one_size_class_share_one_program_and_equal_unpadded(head):
+    """simulate_measurements and interpolate_poses pad to size classes: a second length in
+    the same class compiles nothing (counted with JAX's compile events), and each result
+    equals the computation on the caller's own shapes (the jitted interpolation core on the
+    unpadded arrays, random draws of the unpadded length) to 1e-12 in float64."""
+    import jax.monitoring
+
+    from phjax import _sizes
+    from phjax.motion import resample
+
+    t, p, q = head  # 240 Hz; 2100 and 2600 rows share a class, and so do their samples
+    model = SensorModel(jitter=0.3, dropout=0.2, latency=0.01)
+    sizes = {(_sizes.size_class(n, _sizes.MIN_FRAMES),
+              _sizes.size_class(int(n / 240 * 30) + 1, _sizes.MIN_RENDER)) for n in (2100, 2600)}
+    assert len(sizes) == 1
+    compiles = []
+
+    def on_duration(event, duration, fun_name="", **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(fun_name)
+
+    simulate_measurements(0, t[:2100], p[:2100], q[:2100], model)  # compiles the class
+    interpolate_poses(t[:2100], p[:2100], q[:2100], t[:2100:7] + 1e-3, max_gap=0.01)
+    jax.monitoring.register_event_duration_secs_listener(on_duration)
+    try:
+        mt, mp, mq = simulate_measurements(7, t[:2600], p[:2600], q[:2600], model)
+        gp, gq = interpolate_poses(t[:2600], p[:2600], q[:2600], mt, max_gap=0.01)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(on_duration)
+    assert compiles == []
+    # the reference on the unpadded shapes
+    k_jit, k_p, k_r, k_drop = jax.random.split(jax.random.key(7), 4)
+    n, m = 2600, mt.shape[0]
+    s = t[0] + np.arange(m) / 30.0
+    s = np.clip(s + np.clip(np.asarray(jax.random.normal(k_jit, (m,))) * 0.3, -0.45, 0.45) / 30,
+                t[0], t[n - 1])
+    np.testing.assert_allclose(np.asarray(mt), s + 0.01, rtol=0, atol=1e-12)
+    rp, rq = resample._interpolate_poses(t[:n], p[:n], q[:n], s, None)
+    rp = rp + 0.005 * jax.random.normal(k_p, (m, 3))
+    rq = quat_mul(jax.vmap(_rotvec_quat)(np.deg2rad(1.0) * jax.random.normal(k_r, (m, 3))), rq)
+    lost = np.asarray(jax.random.uniform(k_drop, (m,)) < 0.2)
+    assert 0.1 < lost.mean() < 0.3
+    np.testing.assert_array_equal(np.isnan(np.asarray(mp)).any(-1), lost)
+    np.testing.assert_allclose(np.asarray(mp)[~lost], np.asarray(rp)[~lost], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(mq)[~lost], np.asarray(rq)[~lost], rtol=0, atol=1e-12)
+    for got, ref in zip((gp, gq), resample._interpolate_poses(t[:n], p[:n], q[:n], mt, 0.01)):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(ref), rtol=0, atol=1e-12)
+        assert np.isnan(np.asarray(got)).any() == np.isnan(np.asarray(ref)).any()
+
+
+def _rotvec_quat(v):
+    """``wxyz`` quaternion of a rotation vector (independent of phjax.quaternion)."""
+    a = jnp.linalg.norm(v)
+    return jnp.concatenate([jnp.cos(a / 2)[None], jnp.sinc(a / (2 * jnp.pi)) / 2 * v])
