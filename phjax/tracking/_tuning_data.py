@@ -287,7 +287,14 @@ def tuning_data(
                   for x in kalman_extrapolation(mt, mp, mq, r, config=reference_config))
         if not has_pos:
             rp = np.full_like(rp, np.nan)
-        ref = np.asarray(stream_metrics(r, rp, rq, gp, gq), np.float64)
+        # on the render samples padded to their size class (masked out): one compiled
+        # stream_metrics per class, not per recording length
+        pad = size_class(r.size, MIN_RENDER) - r.size
+        period = (r[-1] - r[0]) / (r.size - 1)
+        ref = np.asarray(stream_metrics(
+            np.concatenate([r, r[-1] + period * np.arange(1, pad + 1)]),
+            *(np.concatenate([x, np.full((pad, x.shape[1]), np.nan)]) for x in (rp, rq, gp, gq)),
+            mask=np.arange(r.size + pad) < r.size), np.float64)
         recs.append((mt, mp, mq, r, gp, gq, np.where(ref > 0, ref, np.nan)))
     # common lengths rounded up to their size classes (phjax.tracking._shapes): data sets of
     # different lengths share one compiled loss and gradient
