@@ -28,9 +28,17 @@ measurement). Compare such outputs with the ground truth at ``tau + lookahead``.
 :func:`hold`, :func:`one_euro` and :func:`linear_slerp` are JAX (``jit``-compiled, dtype-generic;
 :func:`one_euro` is differentiable in its parameters). :func:`one_euro_numpy` (float64 reference
 loop) and :func:`cubic_spline` (SciPy) return NumPy arrays.
+
+**Compiled once per size class.** Called with concrete arrays, the JAX methods pad the
+measurements and render times to their size classes (:mod:`phjax._sizes`; lost frames at the
+last time, dropped render times), so recordings of other lengths in the class reuse the
+compiled program; the result is the unpadded one. Inside ``jit``, ``vmap`` or ``grad`` they are
+traced on the caller's shapes.
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -46,7 +54,7 @@ from .._np_quat import np_qconj as _np_qconj
 from .._np_quat import np_qmul as _np_qmul
 from .._np_quat import np_qnormalize as _np_qnormalize
 from .._np_quat import np_rotvec as _np_rotvec
-from ..motion.resample import interpolate_poses, valid_rows
+from ..motion.resample import interpolate_poses, pad_samples, unpad_rows, valid_rows
 from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
 
 __all__ = [
@@ -93,6 +101,27 @@ def wxyz_to_xyzw(q: Float[ArrayLike, "... 4"]):
 def xyzw_to_wxyz(q: Float[ArrayLike, "... 4"]):
     """Scalar-last ``(x, y, z, w)`` (SciPy's order) to scalar-first ``(w, x, y, z)``."""
     return q[..., [3, 0, 1, 2]]
+
+
+def _size_classed(jitted):
+    """A jitted ``fn(times, positions, quaternions, render_times, **params)`` that, called
+    with concrete arrays, runs on inputs padded to their size classes
+    (:func:`phjax.motion.resample.pad_samples`: lost frames at the last time, so no render
+    time sees them; padded render times dropped); traced calls run as written."""
+
+    @functools.wraps(jitted)
+    def call(times, positions, quaternions, render_times, **params):
+        args = (times, positions, quaternions, render_times)
+        if not any(isinstance(x, jax.core.Tracer) for x in (*args, *jax.tree.leaves(params))):
+            _check_inputs(*(np.asarray(x) for x in args))
+            padded = pad_samples(*args)
+            if padded is not None:
+                m = np.shape(render_times)[0]
+                p, q = jitted(*padded, **params)
+                return unpad_rows(p, m), unpad_rows(q, m)
+        return jitted(*args, **params)
+
+    return call
 
 
 def _check_inputs(times, positions, quaternions, render_times):
@@ -171,6 +200,7 @@ def _hold_channel(x: Array, valid: Array, k: Array) -> Array:
                      jnp.asarray(jnp.nan, x.dtype))
 
 
+@_size_classed
 @jit
 def hold(
     times: Float[ArrayLike, " n"],
@@ -204,6 +234,7 @@ def _alpha(te, cutoff):
     return r / (r + 1)
 
 
+@_size_classed
 @jit
 def one_euro(
     times: Float[ArrayLike, " n"],
@@ -488,6 +519,7 @@ def _extrapolate(times, valid_p, valid_q, xs, vs, qs, ws, render_times, lookahea
     return out[0], out[1]
 
 
+@_size_classed
 @jit
 def alpha_beta(
     times: Float[ArrayLike, " n"],
@@ -552,6 +584,7 @@ def alpha_beta(
     return _extrapolate(t, vp, vq, xs, vs, qs, ws, render_times.astype(dtype), lookahead)
 
 
+@_size_classed
 @jit
 def one_euro_extrapolation(
     times: Float[ArrayLike, " n"],

@@ -65,6 +65,7 @@ from .kalman import (
 )
 from ..curves.orientation import QuaternionHermite, _hermite_factors, quaternion_hermite
 from ..curves.ph_quintic import PHQuintic, hermite_quintic
+from ..motion.resample import unpad_rows
 from ..quaternion import (
     quat_conj,
     quat_from_rotvec,
@@ -553,10 +554,10 @@ def _run_recording(core, config, times, positions, quaternions, render_times, dt
                              args[0].dtype))
         out = core(config, *args)
     out_p, out_q = out
-    out_p, out_q = out_p[:m], out_q[:m]
     if orientation_only:
         out_p = jnp.full_like(out_p, jnp.nan)
-    return out_p, out_q
+    # sliced on the host: a slice of the JAX array would compile a program for every length
+    return unpad_rows(out_p, m), unpad_rows(out_q, m)
 
 
 @jit
