@@ -202,22 +202,25 @@ def test_biwi_relative_pose_acceptance(biwi, detectors, backend):
     assert max(pos) < 1.5 * pos_max, pos
 
 
-@pytest.mark.optimised
 def test_synthetic_sequence_end_to_end_accuracy(detectors):
     """Acceptance: the package's rendered RGB-D head (exact ground truth, 60 frames at 30 Hz)
     through the front-end (OpenCV backend) and the causal 120 Hz stream against the ground
     truth. The target is 2 deg / 1 cm; measured per frame 0.218 deg / 0.25 mm RMSE and rendered
-    as below; the regression bounds are 1.5x those."""
+    as below; the regression bounds are 1.5x those. The rendering and the front-end run 60
+    frames, compiled at XLA's default level (as the ``optimised`` marker would); the three
+    ``track`` calls run once each and keep the suite's ``-O0``."""
     import phjax as pj
+    from phjax._jit import extra_compiler_options
     from phjax.evaluation.metrics import position_rmse
     from phjax.evaluation.metrics import rotation_rmse_deg as rotation_rmse
     from phjax.motion.resample import interpolate_poses
 
-    seq = R.open_rgbd("synthetic:60:3")
-    gt = seq.ground_truth
-    est = H.HeadPoseEstimator(seq.intrinsics, detector=detectors["opencv"],
-                              reference_pose=(gt.quaternions[0], gt.positions[0]))
-    res = [est.process_frame(seq[i]) for i in range(len(seq))]
+    with extra_compiler_options(xla_backend_optimization_level=3):
+        seq = R.open_rgbd("synthetic:60:3")
+        gt = seq.ground_truth
+        est = H.HeadPoseEstimator(seq.intrinsics, detector=detectors["opencv"],
+                                  reference_pose=(gt.quaternions[0], gt.positions[0]))
+        res = [est.process_frame(seq[i]) for i in range(len(seq))]
     assert all(r.ok for r in res)
     times = np.array([r.timestamp for r in res])
     pos = np.array([r.position for r in res])
