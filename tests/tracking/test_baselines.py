@@ -408,3 +408,45 @@ def test_lookahead_is_causal_and_shifts_the_prediction(name):
     np.testing.assert_allclose(a[0][same], c[0], atol=1e-10)
     assert _angle(a[1][same], c[1]).max() < 1e-9
     assert np.abs(a[0][same] - np.asarray(fn(t, p, q, r[same])[0])).max() > 1e-4  # it moved
+
+
+def test_jax_baselines_share_one_program_per_size_class_and_equal_unpadded():
+    """hold, One Euro, alpha-beta and One Euro + extrapolation pad eager calls to size
+    classes: a recording of another length in the class compiles nothing (JAX's compile
+    events) and each output equals the jitted function on the unpadded arrays (float64, exact
+    NaN pattern, 1e-12), render times before the first and after the last frame included."""
+    import jax.monitoring
+
+    rng = np.random.default_rng(4)
+    t = np.cumsum(rng.uniform(0.02, 0.05, 150))
+    p = np.cumsum(rng.normal(0, 0.01, (150, 3)), 0)
+    q = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.05, (150, 3)), 0)).as_quat()[:, [3, 0, 1, 2]]
+    p[rng.random(150) < 0.2] = np.nan  # dropouts, separately per channel
+    q[rng.random(150) < 0.2] = np.nan
+    methods = [(hold, {}), (one_euro, {"min_cutoff": 0.7, "beta": 0.2}),
+               (alpha_beta, {"alpha": 0.4, "lookahead": 0.02}),
+               (one_euro_extrapolation, {"min_cutoff": 1.5, "lookahead": 0.03})]
+    compiles = []
+
+    def on_duration(event, duration, fun_name="", **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(fun_name)
+
+    def render(n):
+        return np.linspace(t[0] - 0.1, t[n - 1] + 0.2, 2 * n + 11)
+
+    for fn, kw in methods:  # compile the class (70 frames, 151 render times; 120 and 251 next)
+        fn(t[:70], p[:70], q[:70], render(70), **kw)
+    jax.monitoring.register_event_duration_secs_listener(on_duration)
+    try:
+        got = [fn(t[:120], p[:120], q[:120], render(120), **kw) for fn, kw in methods]
+    finally:
+        jax.monitoring.unregister_event_duration_listener(on_duration)
+    assert compiles == []
+    for (fn, kw), out in zip(methods, got):
+        ref = fn.__wrapped__(t[:120], p[:120], q[:120], render(120), **kw)  # the jitted function
+        for a, b in zip(out, ref):
+            a, b = np.asarray(a), np.asarray(b)
+            assert a.shape == b.shape and np.isnan(a).any()  # before the first frame
+            np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
