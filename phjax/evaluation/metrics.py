@@ -571,12 +571,15 @@ def _shifted(t: np.ndarray, x: np.ndarray, s: np.ndarray, kind: str) -> np.ndarr
     i = np.clip(np.searchsorted(t, s, side="right") - 1, 0, n - 2)
     u = ((s - t[i]) / (t[i + 1] - t[i]))[..., None]
     inside = (s >= t[0]) & (s <= t[-1])
-    a, b = x[i], x[i + 1]
     if kind == "position":
+        a, b = x[i], x[i + 1]
         y = a + u * (b - a)
     else:
-        a, b = _np_qnormalize(a), _np_qnormalize(b)
-        y = _np_qmul(_np_from_rotvec(u * _np_rotvec(_np_qmul(b, _np_qconj(a)))), a)
+        # per pair of consecutive samples once (not per query: shift_lag asks ~200 shifts of
+        # every sample), the same operations as slerp(a, b, u) = exp(u log(b a*)) a
+        xn = _np_qnormalize(x)
+        step = _np_rotvec(_np_qmul(xn[1:], _np_qconj(xn[:-1])))
+        y = _np_qmul(_np_from_rotvec(u * step[i]), xn[i])
     return np.where(inside[..., None], y, np.nan)
 
 
