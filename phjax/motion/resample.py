@@ -14,7 +14,6 @@ NaN.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
@@ -22,7 +21,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._jit import jit
 from .._misc import safe_div
-from .._sizes import MIN_FRAMES, MIN_RENDER, size_class
+from .._sizes import pad_samples, unpad_rows
 from ..quaternion import quat_conj, quat_mul, quat_normalize, quat_slerp, quat_to_rotvec
 
 __all__ = ["interpolate_poses", "finite_difference_velocities", "snap_to_frames", "valid_rows"]
@@ -152,40 +151,6 @@ def interpolate_poses(
     m = shapes[3][0]
     p, q = _interpolate_poses(*padded, max_gap)
     return unpad_rows(p, m), unpad_rows(q, m)
-
-
-def unpad_rows(x: Array, m: int) -> Array:
-    """The first ``m`` rows of a result computed on padded inputs (sliced on the host and put
-    back with ``device_put``: a slice of a JAX array, or ``jnp.asarray`` of a NumPy array,
-    compiles a small program for every length)."""
-    if isinstance(x, jax.core.Tracer):  # computed from traced parameters (jax.grad of a call)
-        return x[:m]
-    return jax.device_put(np.asarray(x)[:m])
-
-
-def pad_samples(times, positions, quaternions, query_times, *others):
-    """Samples and queries padded to their size classes, as NumPy arrays (``None`` when any
-    argument, ``others`` included, is traced or an array is not floating point).
-
-    Padded samples repeat the last time with NaN position and orientation (invalid rows after
-    every real one: no query sees them); padded queries are the first sample time (their
-    results are to be dropped). See :func:`interpolate_poses`.
-
-    Returns:
-        ``(times (nb,), positions (nb, 3), quaternions (nb, 4), query_times (mb,))`` or ``None``.
-    """
-    if any(isinstance(x, jax.core.Tracer) for x in (times, positions, quaternions, query_times,
-                                                     *others)):
-        return None
-    t, p, q, r = (np.asarray(x) for x in (times, positions, quaternions, query_times))
-    if not all(np.issubdtype(x.dtype, np.floating) for x in (t, p, q, r)):
-        return None
-    n, m = t.shape[0], r.shape[0]
-    dn, dm = size_class(n, MIN_FRAMES) - n, size_class(m, MIN_RENDER) - m
-    return (np.concatenate([t, np.full(dn, t[-1], t.dtype)]),
-            np.concatenate([p, np.full((dn, 3), np.nan, p.dtype)]),
-            np.concatenate([q, np.full((dn, 4), np.nan, q.dtype)]),
-            np.concatenate([r, np.full(dm, t[0], r.dtype)]))
 
 
 @jit

@@ -16,9 +16,9 @@ from .._jit import jit
 from .._np_quat import np_from_rotvec as _np_from_rotvec
 from .._np_quat import np_qconj as _np_qconj
 from .._np_quat import np_qmul as _np_qmul
-from .._sizes import MIN_RENDER, size_class
+from .._sizes import MIN_RENDER, pad_samples, size_class, unpad_rows
 from ..quaternion import quat_from_rotvec, quat_mul
-from .resample import interpolate_poses, pad_samples, unpad_rows
+from .resample import interpolate_poses
 
 __all__ = ["SensorModel", "simulate_measurements", "synthetic_head_motion"]
 

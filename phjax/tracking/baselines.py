@@ -54,7 +54,8 @@ from .._np_quat import np_qconj as _np_qconj
 from .._np_quat import np_qmul as _np_qmul
 from .._np_quat import np_qnormalize as _np_qnormalize
 from .._np_quat import np_rotvec as _np_rotvec
-from ..motion.resample import interpolate_poses, pad_samples, unpad_rows, valid_rows
+from .._sizes import pad_samples, unpad_rows
+from ..motion.resample import interpolate_poses, valid_rows
 from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
 
 __all__ = [
@@ -106,7 +107,7 @@ def xyzw_to_wxyz(q: Float[ArrayLike, "... 4"]):
 def _size_classed(jitted):
     """A jitted ``fn(times, positions, quaternions, render_times, **params)`` that, called
     with concrete arrays, runs on inputs padded to their size classes
-    (:func:`phjax.motion.resample.pad_samples`: lost frames at the last time, so no render
+    (:func:`phjax._sizes.pad_samples`: lost frames at the last time, so no render
     time sees them; padded render times dropped); traced calls run as written."""
 
     @functools.wraps(jitted)

@@ -50,6 +50,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._jit import jit
+from .._sizes import unpad_rows
 from . import _exported
 from ._batch import run_batch
 from ._shapes import bounded_cache, pad_recording
@@ -65,7 +66,6 @@ from .kalman import (
 )
 from ..curves.orientation import QuaternionHermite, _hermite_factors, quaternion_hermite
 from ..curves.ph_quintic import PHQuintic, hermite_quintic
-from ..motion.resample import unpad_rows
 from ..quaternion import (
     quat_conj,
     quat_from_rotvec,
