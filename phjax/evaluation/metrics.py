@@ -563,6 +563,10 @@ def latency(
     return Latency(float(lag), float(corr[k]), int(counts[k]))
 
 
+#: candidate shifts of :func:`shift_lag` evaluated together
+_LAG_CHUNK = 16
+
+
 def _shifted(t: np.ndarray, x: np.ndarray, s: np.ndarray, kind: str) -> np.ndarray:
     """``x`` (sampled at ``t``) interpolated at the times ``s``: linear for positions, slerp for
     quaternions, between consecutive samples; NaN outside ``[t_0, t_-1]`` or when a bracketing
@@ -618,16 +622,24 @@ def shift_lag(
     if t.shape[0] < 4:
         return nan
     lags = np.arange(min_lag, max_lag + 0.5 * step, step)
-    shifted = _shifted(t, g, t[None, :] - lags[:, None], kind)  # (L, n, d)
-    ok = _finite_rows(e) & np.all(_finite_rows(shifted), axis=0)
+    # the squared error of every sample at every shift, a few shifts at a time (the (shifts,
+    # n, d) temporaries of all ~200 shifts at once are ~50 MB each and ran out of the caches)
+    err2 = np.empty((lags.size, t.shape[0]))
+    finite = np.empty((lags.size, t.shape[0]), bool)
+    with np.errstate(invalid="ignore", divide="ignore"):  # NaN rows, scored out below
+        for c in range(0, lags.size, _LAG_CHUNK):
+            shifted = _shifted(t, g, t[None, :] - lags[c:c + _LAG_CHUNK, None], kind)
+            finite[c:c + _LAG_CHUNK] = _finite_rows(shifted)
+            if kind == "position":
+                err = np.linalg.norm(shifted - e, axis=-1)
+            else:
+                err = np.degrees(_geodesic_angle(shifted, e[None]))
+            err2[c:c + _LAG_CHUNK] = err**2
+    ok = _finite_rows(e) & np.all(finite, axis=0)
     count = int(ok.sum())
     if count < 3:
         return nan
-    if kind == "position":
-        err = np.linalg.norm(shifted[:, ok] - e[ok], axis=-1)
-    else:
-        err = np.degrees(_geodesic_angle(shifted[:, ok], e[ok][None]))
-    rmse = np.sqrt(np.mean(err**2, axis=-1))
+    rmse = np.sqrt(np.mean(err2[:, ok], axis=-1))
     k = int(np.argmin(rmse))
     lag = float(lags[k])
     if 0 < k < len(lags) - 1:
