@@ -232,6 +232,16 @@ def measured_recording(
     return t, p, q, r, gp, gq
 
 
+def _pad_render(r, length, *rows):
+    """Render times ``r`` padded to ``length`` (continued with the mean render period: rounding
+    of one difference would grow with the index), the mask of the real samples, and ``rows``
+    (per render sample) padded with NaN."""
+    pad = length - r.size
+    period = (r[-1] - r[0]) / (r.size - 1)
+    return (np.concatenate([r, r[-1] + period * np.arange(1, pad + 1)]), np.arange(length) < r.size,
+            *(np.concatenate([x, np.full((pad, x.shape[1]), np.nan)]) for x in rows))
+
+
 def tuning_data(
     recordings: Sequence,
     *,
@@ -289,12 +299,8 @@ def tuning_data(
             rp = np.full_like(rp, np.nan)
         # on the render samples padded to their size class (masked out): one compiled
         # stream_metrics per class, not per recording length
-        pad = size_class(r.size, MIN_RENDER) - r.size
-        period = (r[-1] - r[0]) / (r.size - 1)
-        ref = np.asarray(stream_metrics(
-            np.concatenate([r, r[-1] + period * np.arange(1, pad + 1)]),
-            *(np.concatenate([x, np.full((pad, x.shape[1]), np.nan)]) for x in (rp, rq, gp, gq)),
-            mask=np.arange(r.size + pad) < r.size), np.float64)
+        rr, mask, *rows = _pad_render(r, size_class(r.size, MIN_RENDER), rp, rq, gp, gq)
+        ref = np.asarray(stream_metrics(rr, *rows, mask=mask), np.float64)
         recs.append((mt, mp, mq, r, gp, gq, np.where(ref > 0, ref, np.nan)))
     # common lengths rounded up to their size classes (phjax.tracking._shapes): data sets of
     # different lengths share one compiled loss and gradient
@@ -302,19 +308,15 @@ def tuning_data(
     m = size_class(max(x[3].size for x in recs), MIN_RENDER)
     cols = [[] for _ in range(8)]
     for mt, mp, mq, r, gp, gq, ref in recs:
-        pad_n, pad_m = n - mt.size, m - r.size
+        pad_n = n - mt.size
         # padding frames come 1 s after the last real frame and render time; padding render
         # samples (the only ones that may reach them) are masked out
         t_pad = max(mt[-1], r[-1]) + 1.0 + np.arange(pad_n)
         cols[0].append(np.concatenate([mt, t_pad]))
         cols[1].append(np.concatenate([mp, np.full((pad_n, 3), np.nan)]))
         cols[2].append(np.concatenate([mq, np.full((pad_n, 4), np.nan)]))
-        # (spaced by the mean render period: rounding of one difference would grow with k)
-        period = (r[-1] - r[0]) / (r.size - 1)
-        cols[3].append(np.concatenate([r, r[-1] + period * np.arange(1, pad_m + 1)]))
-        cols[4].append(np.arange(m) < r.size)
-        cols[5].append(np.concatenate([gp, np.full((pad_m, 3), np.nan)]))
-        cols[6].append(np.concatenate([gq, np.full((pad_m, 4), np.nan)]))
+        for k, x in zip((3, 4, 5, 6), _pad_render(r, m, gp, gq)):
+            cols[k].append(x)
         cols[7].append(ref)
     dtype = jnp.zeros((), float).dtype if dtype is None else dtype
     arr = [jnp.asarray(np.stack(c), bool if k == 4 else dtype) for k, c in enumerate(cols)]
