@@ -567,24 +567,29 @@ def latency(
 _LAG_CHUNK = 16
 
 
-def _shifted(t: np.ndarray, x: np.ndarray, s: np.ndarray, kind: str) -> np.ndarray:
-    """``x`` (sampled at ``t``) interpolated at the times ``s``: linear for positions, slerp for
-    quaternions, between consecutive samples; NaN outside ``[t_0, t_-1]`` or when a bracketing
-    sample is NaN."""
+def _interpolant(t: np.ndarray, x: np.ndarray, kind: str):
+    """``s -> x(s)``: ``x`` (sampled at ``t``) interpolated at the times ``s``, linear for
+    positions, slerp for quaternions, between consecutive samples; NaN outside ``[t_0, t_-1]``
+    or when a bracketing sample is NaN. What does not depend on ``s`` (each pair of samples'
+    rotation) is computed once, here (:func:`shift_lag` asks ~200 shifts of every sample)."""
     n = t.shape[0]
-    i = np.clip(np.searchsorted(t, s, side="right") - 1, 0, n - 2)
-    u = ((s - t[i]) / (t[i + 1] - t[i]))[..., None]
-    inside = (s >= t[0]) & (s <= t[-1])
-    if kind == "position":
-        a, b = x[i], x[i + 1]
-        y = a + u * (b - a)
-    else:
-        # per pair of consecutive samples once (not per query: shift_lag asks ~200 shifts of
-        # every sample), the same operations as slerp(a, b, u) = exp(u log(b a*)) a
-        xn = _np_qnormalize(x)
-        step = _np_rotvec(_np_qmul(xn[1:], _np_qconj(xn[:-1])))
-        y = _np_qmul(_np_from_rotvec(u * step[i]), xn[i])
-    return np.where(inside[..., None], y, np.nan)
+    if kind != "position":
+        # slerp(a, b, u) = exp(u log(b a*)) a, with log(b a*) per pair of consecutive samples
+        x = _np_qnormalize(x)
+        step = _np_rotvec(_np_qmul(x[1:], _np_qconj(x[:-1])))
+
+    def at(s: np.ndarray) -> np.ndarray:
+        i = np.clip(np.searchsorted(t, s, side="right") - 1, 0, n - 2)
+        u = ((s - t[i]) / (t[i + 1] - t[i]))[..., None]
+        inside = (s >= t[0]) & (s <= t[-1])
+        if kind == "position":
+            a, b = x[i], x[i + 1]
+            y = a + u * (b - a)
+        else:
+            y = _np_qmul(_np_from_rotvec(u * step[i]), x[i])
+        return np.where(inside[..., None], y, np.nan)
+
+    return at
 
 
 @_over_recordings(times="times", est="rows", gt="rows")
@@ -627,8 +632,9 @@ def shift_lag(
     err2 = np.empty((lags.size, t.shape[0]))
     finite = np.empty((lags.size, t.shape[0]), bool)
     with np.errstate(invalid="ignore", divide="ignore"):  # NaN rows, scored out below
+        gt_at = _interpolant(t, g, kind)
         for c in range(0, lags.size, _LAG_CHUNK):
-            shifted = _shifted(t, g, t[None, :] - lags[c:c + _LAG_CHUNK, None], kind)
+            shifted = gt_at(t[None, :] - lags[c:c + _LAG_CHUNK, None])
             finite[c:c + _LAG_CHUNK] = _finite_rows(shifted)
             if kind == "position":
                 err = np.linalg.norm(shifted - e, axis=-1)
