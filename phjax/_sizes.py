@@ -32,7 +32,11 @@ def pad_samples(times, positions, quaternions, query_times, *others):
 
     Padded samples repeat the last time with NaN position and orientation (invalid rows after
     every real one: no query sees them); padded queries are the first sample time (their
-    results are to be dropped). See :func:`phjax.motion.resample.interpolate_poses`.
+    results are to be dropped). See :func:`phjax.motion.resample.interpolate_poses`. Unlike
+    :func:`phjax.tracking._shapes.pad_recording`, whose padding frames come after every render
+    time (the tracker's filter steps through lost frames, so they must follow what is shown),
+    nothing here reads an invalid row, and repeating the last time keeps the arrays' dtype
+    and holds for any query (NaN included).
 
     Returns:
         ``(times (nb,), positions (nb, 3), quaternions (nb, 4), query_times (mb,))`` or ``None``.
