@@ -134,7 +134,9 @@ def call(core, config, args):
         if exported is None:  # not stored yet (or unreadable): trace, store
             on_leaves = jax.jit(lambda ls, *a: fun(jax.tree.unflatten(treedef, ls), *a))
             exported = jax.export.export(on_leaves)(leaves, *args)
-            with contextlib.suppress(OSError):
+            # a cache never fails the computation: an unwritable folder, or no flatbuffers
+            # (jax.export's serialiser) in this environment, only means no stored program
+            with contextlib.suppress(OSError, ImportError):
                 _write(path, exported.serialize())
         program = jit(exported.call)
         _LOADED[key] = program

@@ -96,3 +96,20 @@ def test_damaged_file_and_traced_config_fall_back(tmp_path):
         traced = jax.jit(lambda h: pj.track(t, p, q, r, config=TrackerConfig(horizon=h))[0])
         np.testing.assert_allclose(np.asarray(traced(0.028)), ref, rtol=0, atol=1e-13)
         assert len(list(tmp_path.iterdir())) == 1
+
+
+def test_a_missing_serialiser_only_means_no_stored_program(tmp_path, monkeypatch):
+    """Without flatbuffers (jax.export's serialiser; a core dependency, but an environment may
+    lack it) the command line's stored programs are skipped: the result is the traced one and
+    nothing is written (before, `phjax demo` ended in an ImportError traceback)."""
+    t, p, q, r = _recording(100, seed=2)
+    ref = np.asarray(pj.track(t, p, q, r)[0])
+
+    def no_serialiser(self, *a, **k):
+        raise ImportError("Please install 'flatbuffers' in order to use Exported serialization")
+
+    monkeypatch.setattr(jax.export.Exported, "serialize", no_serialiser)
+    with _exported.exported_programs(tmp_path):
+        got = np.asarray(pj.track(t, p, q, r)[0])
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-13)
+    assert list(tmp_path.iterdir()) == []
