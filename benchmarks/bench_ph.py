@@ -201,8 +201,8 @@ def section_construction():
             t0 = time.perf_counter()
             comp = f.lower(*args).compile()
             ct = time.perf_counter() - t0
-            res[name] = (bench(lambda: block(comp(*args)), budget=budget), ct)
-        res["numpy"] = (bench(lambda: np_fixed(*np_args, *phis), budget=budget), 0.0)
+            res[name] = (bench(lambda: block(comp(*args)), budget=budget), ct)  # noqa: B023 (timed now)
+        res["numpy"] = (bench(lambda: np_fixed(*np_args, *phis), budget=budget), 0.0)  # noqa: B023
         # same curves? (fixed angles, same axis convention)
         p_np = np_fixed(*np_args, *phis)[3]
         p_jx = np.asarray(comp(*jx_args, *jx_phis).control_points)
@@ -363,7 +363,7 @@ def section_scaling():
     faults = {"time": [], "arclength": []}
     for n in ns:
         for by in res:
-            tm = bench(lambda: block(phjax.sample(curves, n, by=by)), budget=budget)
+            tm = bench(lambda: block(phjax.sample(curves, n, by=by)), budget=budget)  # noqa: B023
             res[by].append(tm.best)
             faults[by].append(tm.minflt)
     rows = []

@@ -67,7 +67,7 @@ def _seed_models(model_dir):
         src = data / "yunet_face_detection" if data else None
         if src is None or not src.is_dir():
             raise SystemExit(f"YuNet models not in {cache}; run phjax.vision.face_detection."
-                             "download_model(...) or point --model-dir at a seeded cache")
+                             "download_model(...) or point --model-dir at a seeded cache") from None
         F.seed_model_cache(src, cache)
     return cache
 

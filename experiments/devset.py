@@ -80,6 +80,6 @@ def simulated_devset(seconds: float, quick: bool = False, rate: float = 30.0):
 
 
 if __name__ == "__main__":
-    for name, kind, t, p, q in load_devset():
+    for name, kind, t, p, _q in load_devset():
         print(f"{name:40s} {kind:7s} {t[-1] - t[0]:6.1f} s  {len(t):6d} samples  "
               f"positions: {np.isfinite(p).any()}")

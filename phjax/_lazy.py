@@ -22,7 +22,7 @@ def lazy_exports(package: str, exports: dict[str, tuple[str, ...]]):
         The two module-level functions; assign them in the package's ``__init__``.
     """
     where = {name: module for module, names in exports.items() for name in names}
-    for module, names in exports.items():
+    for module in exports:
         if module and "." not in module:
             where.setdefault(module, module)  # the submodule itself
 

@@ -391,7 +391,7 @@ class LiveTracker:
                                           daemon=True),
                          threading.Thread(target=self._render_main, name="phjax-live-render",
                                           daemon=True)]
-        for th in self._threads:
+        for _ in self._threads:
             self.clock.register()  # registered before start: the virtual clock waits for both
         for th in self._threads:
             th.start()

@@ -14,6 +14,7 @@ __all__ = [
     "finite_difference_velocities",
     "interpolate_poses",
     "simulate_measurements",
+    "snap_to_frames",
     "synthetic_head_motion",
     "valid_rows",
 ]

@@ -319,10 +319,10 @@ def test_ph_cubic_reproduction():
     i = np.array([0, 1.0, 0, 0])
     for _ in range(4):
         B0, B1 = rng.normal(size=(2, 4))
-        Bq = lambda t: B0 * (1 - t) + B1 * t  # noqa: E731  linear preimage -> PH cubic
+        Bq = lambda t: B0 * (1 - t) + B1 * t  # noqa: B023  linear preimage -> PH cubic
 
         def hod(t):
-            b = Bq(t)
+            b = Bq(t)  # noqa: B023 (used within this iteration)
             return qmul_np(qmul_np(b, i), conj_np(b))[1:]
 
         p0 = rng.normal(size=3)
@@ -330,7 +330,7 @@ def test_ph_cubic_reproduction():
         d0, d1 = hod(0.0), hod(1.0)
 
         def F(beta):
-            c = pj.hermite_quintic(p0, p1, d0, d1, -beta / 2, beta / 2)
+            c = pj.hermite_quintic(p0, p1, d0, d1, -beta / 2, beta / 2)  # noqa: B023
             # best alpha for this beta: the common phase of A0, A2 relative to B (phi1 = 0)
             A0, A1, A2 = (np.asarray(x) for x in (c.A0, c.A1, c.A2))
             Bv = 4 * A1 + 3 * (A0 + A2)

@@ -568,7 +568,7 @@ def test_rgbd_camera_thread_hands_the_newest_frame_to_a_slow_front_end():
     assert seq.loads == list(range(60))  # the camera read every frame once, in order
     assert 14 <= len(frames) <= 21 and frames == sorted(frames)
     assert len(frames) + sum(m.dropped for _, m in got) == 60  # each frame used or dropped
-    for (t_emit, m), i in zip(got, frames):
+    for (_, m), i in zip(got, frames):
         assert m.t == t0 + (seq.timestamps[i] - seq.timestamps[0])
         assert abs(m.work - 0.1) < 0.05
     # the front-end takes a frame within a camera period of its capture, plus scheduling

@@ -240,7 +240,7 @@ def test_reports_are_rate_limited_and_backlog_is_superseded():
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     got, stop = [], threading.Event()
     try:
-        for i in range(20):
+        for _ in range(20):
             tx.sendto(PACK.pack(0, 0, 60, float("nan"), 0, 0), ("127.0.0.1", src.port))
         for i in range(10):  # queued before the read loop starts: a backlog
             tx.sendto(PACK.pack(i, 0, 60, 0, 0, 0), ("127.0.0.1", src.port))

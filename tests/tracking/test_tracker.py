@@ -52,7 +52,8 @@ def test_quaternion_hermite_degenerate_finite():
     for q1, w in [(q, np.zeros(3)), (half_turn, np.zeros(3)), (half_turn, np.array([0, 0, 1e-9]))]:
         c = pj.quaternion_hermite(q, q1, w, w, 0.1)
         assert np.all(np.isfinite(np.asarray(c.rotation(np.linspace(0, 1, 5)))))
-        g = jax.grad(lambda w: jnp.sum(pj.quaternion_hermite(q, q1, w, w, 0.1).rotation(0.3)))(jnp.asarray(w))
+        g = jax.grad(lambda w, q1=q1: jnp.sum(
+            pj.quaternion_hermite(q, q1, w, w, 0.1).rotation(0.3)))(jnp.asarray(w))
         assert np.all(np.isfinite(np.asarray(g)))
 
 

@@ -349,11 +349,11 @@ def test_point_pairs_join_the_dense_objective():
             yt, nt = TARGET.reshape(-1, 3)[idx], NORMALS.reshape(-1, 3)[idx]
 
             def resid(p):
-                rot = Rotation.from_rotvec(p[:3]) * rot0
+                rot = Rotation.from_rotvec(p[:3]) * rot0  # noqa: B023
                 x = rot.apply(SOURCE1) + p[3:]
                 xp = rot.apply(s) + p[3:]
                 chol = np.linalg.cholesky(info)  # e^T info e = |chol^T e|^2
-                return np.concatenate([np.sum(nt * (x - yt), -1) / sigma,
+                return np.concatenate([np.sum(nt * (x - yt), -1) / sigma,  # noqa: B023
                                        np.einsum("kij,ki->kj", chol, xp - y).ravel()])
 
             x0 = np.concatenate([np.zeros(3), np.asarray(res.translation)])
