@@ -1,7 +1,7 @@
 """The accuracy / smoothness / lag frontier measured at the display time (issue 30).
 
     python experiments/display_frontier.py [--lookaheads 0 20 50] [--seconds 15] [--quick]
-                                           [--out results/display_frontier]
+                                           [--out results/display_frontier] [--render-phase 0.5]
                                            [--data DIR | --recordings FILE [FILE ...]]
 
 A headset or game shows a frame some 20-50 ms after the pose is read; every method here predicts
@@ -13,7 +13,9 @@ Protocol: that of ``experiments/frontier.py`` (its docstring), at each lookahead
 * **Data.** The development set (``experiments/devset.py``): the first ``--seconds`` (15) of each
   development recording (those shorter are skipped), default sensor model (30 Hz, 5 mm, 1 deg,
   5 % dropouts, seed 0), 120 Hz render clock aligned with the camera clock (render samples at a
-  frame's instant see that frame); the first second is warm-up and not scored. ``--data DIR``
+  frame's instant see that frame; ``--render-phase f`` offsets the render clock by ``f`` render
+  periods, ``0.5`` being halfway between, as independent clocks are on average); the first
+  second is warm-up and not scored. ``--data DIR``
   reads a folder laid out like ``../shared/data``; ``--recordings`` reads any trajectory files
   (:func:`phjax.io.read_trajectory`, format detected), so the same checks run on recordings we
   do not have. ``--quick``: every third development recording.
@@ -124,14 +126,16 @@ def simulate(seqs, seconds: float, quick: bool = False) -> list[dict]:
     return out
 
 
-def prepare(recs: list[dict], seconds: float, lookaheads: list[float]) -> list[dict]:
-    """Render times (cut to one common length) and, per lookahead ``L``, the ground truth at
-    ``tau + L`` and at ``tau + L - d`` for every candidate lag ``d`` (:data:`LAGS`)."""
+def prepare(recs: list[dict], seconds: float, lookaheads: list[float],
+            phase: float = 0.0) -> list[dict]:
+    """Render times (cut to one common length, offset by ``phase`` render periods from the
+    camera clock) and, per lookahead ``L``, the ground truth at ``tau + L`` and at
+    ``tau + L - d`` for every candidate lag ``d`` (:data:`LAGS`)."""
     m = int((seconds - 1.0 - WARMUP - 0.2) * RENDER)
     out = []
     for rec in recs:
         t, p, q, mt = rec["t"], rec["p"], rec["q"], rec["mt"]
-        r = snap_to_frames(mt, mt[0] + WARMUP + np.arange(m) / RENDER)
+        r = snap_to_frames(mt, mt[0] + WARMUP + (np.arange(m) + phase) / RENDER)
         truth = {}
         for L in lookaheads:
             gp, gq = (np.asarray(x) for x in interpolate_poses(t, p, q, r + L, max_gap=0.1))
@@ -264,6 +268,28 @@ def target_rows(res, idx, stream=STREAM) -> dict:
     return out
 
 
+def at_jerk_third(res, idx) -> dict:
+    """Per channel (``"pos"``, ``"rot"``): ``(ratio, horizon)`` where the stream's horizon sweep
+    crosses a median jerk of 1/3 of the tuned Kalman CV's on ``idx`` (log-linear interpolation
+    between the horizons around the first crossing); ``ratio`` is the RMSE ratio against the
+    strongest external baseline there. ``(nan, nan)`` if the sweep does not cross."""
+    hs = sorted(k for (m, k) in res["runs"] if m == STREAM)
+    rows = [target_rows(dict(res, tuned=dict(res["tuned"], **{STREAM: (h, h)})), idx)
+            for h in hs]
+    out = {}
+    for key, jkey in (("pos", "jp"), ("rot", "jr")):
+        out[key] = (math.nan, math.nan)
+        for (h0, a), (h1, b) in zip(zip(hs, rows), zip(hs[1:], rows[1:])):
+            j0, j1 = a[jkey], b[jkey]
+            if j0 > j1 > 0 and j0 >= 1 / 3 >= j1:
+                w = math.log(3 * j0) / math.log(j0 / j1)
+                out[key] = (a[f"phjax_{key}"][0] + w * (b[f"phjax_{key}"][0]
+                                                        - a[f"phjax_{key}"][0]),
+                            math.exp(math.log(h0) + w * math.log(h1 / h0)))
+                break
+    return out
+
+
 def equal_smoothness(res, train, idx) -> dict:
     """Each baseline at the knob with the lowest train RMSE among those whose mean train jerk
     (relative to the tuned Kalman CV) is at most the phjax stream's at its operating point, per
@@ -289,12 +315,15 @@ def equal_smoothness(res, train, idx) -> dict:
     return out
 
 
-def report(data, results: dict, names, train, splits, seconds, wall) -> tuple[str, dict]:
+def report(data, results: dict, names, train, splits, seconds, wall,
+           phase: float = 0.0) -> tuple[str, dict]:
     cols = [("pos", "p"), ("rot", "r"), ("jp", "p"), ("jr", "r"), ("lag_p", "p"), ("lag_r", "r")]
     order = [*EXTERNAL, IMM, STREAM, DEFAULT]
     lines = ["# Accuracy / smoothness / lag frontier at the display time", "",
              f"{len(data)} recordings x {seconds:g} s (first second warm-up), default sensor "
-             "(30 Hz, 5 mm, 1 deg, 5 % dropouts), 120 Hz render aligned with the camera clock. Every "
+             "(30 Hz, 5 mm, 1 deg, 5 % dropouts), 120 Hz render "
+             + ("aligned with the camera clock" if phase == 0 else
+                f"offset {phase:g} render periods from the camera clock") + ". Every "
              "method shows at render time tau the pose predicted for tau + L and is scored "
              "against the truth at tau + L. Train (tuning): "
              + ", ".join(names[i] for i in train) + ". Test: "
@@ -337,6 +366,23 @@ def report(data, results: dict, names, train, splits, seconds, wall) -> tuple[st
                              f"{rc(tr['imm_rot'])} | {tr['jp']:.3f} | {tr['jr']:.3f} | "
                              f"{tr['lag_p']:+.1f} | {tr['lag_r']:+.1f} | "
                              f"{res['tuned'][stream][0]:g} s |")
+    lines += ["", "### The stream's frontier where its jerk is 1/3 of the Kalman CV's", "",
+              "The rule above keeps the *train* jerk within 1/3; on another split the jerk "
+              "ratio at that horizon differs. This reads the stream's horizon sweep on each "
+              "split at a jerk of exactly 1/3 of the tuned Kalman CV's, per channel "
+              "(log-linear interpolation between the two horizons around the crossing): the "
+              "RMSE ratio against the strongest external baseline there, and the horizon. A "
+              "description of the curve, not a tuned setting.", "",
+              "| lookahead | split | pos RMSE at pos jerk 1/3 | rot RMSE at rot jerk 1/3 |",
+              "|---|---|---|---|"]
+    for L, res in results.items():
+        for split, idx in splits.items():
+            if idx and split != "TUM VI rooms":
+                cross = at_jerk_third(res, idx)
+                cells = [f"{r:.3f} (horizon {1e3 * h:.1f} ms)" if np.isfinite(r) else "-"
+                         for r, h in (cross["pos"], cross["rot"])]
+                summary[("jerk 1/3", L, split)] = cross
+                lines.append(f"| {1e3 * L:g} ms | {split} | " + " | ".join(cells) + " |")
     lines.append("")
     for L, res in results.items():
         lines += [f"## Lookahead {1e3 * L:g} ms", ""]
@@ -454,6 +500,10 @@ def main(argv=None):
     ap.add_argument("--smoke", action="store_true",
                     help="a smoke run: --quick, 5 s, lookaheads 0 and 20 ms, "
                     "every third knob value")
+    ap.add_argument("--render-phase", type=float, default=0.0,
+                    help="offset of the render clock from the camera clock, in render periods "
+                    "(0: aligned, render samples at a frame's instant see it; 0.5: halfway "
+                    "between, as with independent clocks on average)")
     src = ap.add_mutually_exclusive_group()
     src.add_argument("--data", type=Path, default=None,
                      help="a folder laid out like ../shared/data (default: ../shared/data)")
@@ -466,6 +516,8 @@ def main(argv=None):
         ap.error("--seconds must be at least 3.5 (1 s warm-up, 1 s cut)")
     if any(not 0 <= L <= 200 for L in args.lookaheads):
         ap.error("--lookaheads must lie in 0-200 ms")
+    if not 0 <= args.render_phase < 1:
+        ap.error("--render-phase must lie in [0, 1) render periods")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
@@ -473,14 +525,14 @@ def main(argv=None):
         with open(out / "results.pkl", "rb") as fh:
             saved = pickle.load(fh)
         data, results, wall = saved["data"], saved["results"], saved["wall"]
-        args.seconds = saved["seconds"]
+        args.seconds, args.render_phase = saved["seconds"], saved.get("render_phase", 0.0)
     else:
         lookaheads = [L / 1e3 for L in args.lookaheads]
         recs = simulate(load_recordings(args.seconds, args.data, args.recordings), args.seconds,
                         args.quick and not args.recordings)
         if len(recs) < 2:
             ap.error(f"need at least 2 recordings of {args.seconds:g} s (got {len(recs)})")
-        data = prepare(recs, args.seconds, lookaheads)
+        data = prepare(recs, args.seconds, lookaheads, args.render_phase)
     names = [d["name"] for d in data]
     train = [i for i in range(len(data)) if i % 2 == 0]
     splits = {"test": [i for i in range(len(data)) if i % 2 == 1],
@@ -492,8 +544,9 @@ def main(argv=None):
         wall = time.time() - t0
         with open(out / "results.pkl", "wb") as fh:  # the scores, for --report-only
             pickle.dump({"data": [{k: d[k] for k in ("name", "kind")} for d in data],
-                         "results": results, "wall": wall, "seconds": args.seconds}, fh)
-    text, _ = report(data, results, names, train, splits, args.seconds, wall)
+                         "results": results, "wall": wall, "seconds": args.seconds,
+                         "render_phase": args.render_phase}, fh)
+    text, _ = report(data, results, names, train, splits, args.seconds, wall, args.render_phase)
     (out / "display_frontier.md").write_text(text)
     print(text)
     write_csv(out / "display_frontier.csv", data, results, train)

@@ -419,6 +419,8 @@ def test_display_frontier_smoke_on_named_recordings(tmp_path):
     assert "## Target: phjax / strongest external baseline" in text
     assert "| 20 ms | test |" in text and "| 0 ms | all |" in text
     assert "## Lookahead 20 ms" in text and "At equal smoothness" in text
+    assert "### The stream's frontier where its jerk is 1/3 of the Kalman CV's" in text
+    assert "120 Hz render aligned with the camera clock" in text
     rows = _rows(out / "display_frontier.csv")
     tuned = json.loads((out / "tuned.json").read_text())
     h20 = tuned["20 ms"]["phjax stream"][0]
@@ -440,3 +442,24 @@ def test_display_frontier_smoke_on_named_recordings(tmp_path):
     rmse0, rmse20 = get("raw hold", "0", "pos_rmse_mm"), get("raw hold", "20", "pos_rmse_mm")
     assert all(rmse20[k] > rmse0[k] for k in rmse0)
     assert (out / "display_frontier.png").stat().st_size > 20_000
+
+
+def test_display_frontier_render_phase_offsets_the_render_clock():
+    """``--render-phase 0.5`` moves every render sample half a render period later, so none
+    falls on a camera frame's instant (on the aligned clock every fourth does), and the truth is
+    still taken at the display time ``tau + L``."""
+    import display_frontier as dfr
+
+    from phjax.motion.resample import interpolate_poses
+    from phjax.motion.simulate import synthetic_head_motion
+
+    t, p, q = (np.asarray(x) for x in synthetic_head_motion(duration=6.0, seed=3))
+    recs = dfr.simulate([("synthetic", "file", t, p, q)], 5.0)
+    aligned, offset = (dfr.prepare(recs, 5.0, [0.02], phase)[0] for phase in (0.0, 0.5))
+    np.testing.assert_allclose(offset["r"] - aligned["r"], 0.5 / dfr.RENDER, rtol=0, atol=1e-9)
+    mt = recs[0]["mt"]
+    on_frame = lambda r: np.min(np.abs(r[:, None] - mt[None, :]), axis=1) < 1e-9  # noqa: E731
+    assert on_frame(aligned["r"]).mean() == pytest.approx(0.25, abs=0.02)
+    assert not on_frame(offset["r"]).any()
+    gp, _ = interpolate_poses(t, p, q, offset["r"] + 0.02, max_gap=0.1)
+    np.testing.assert_allclose(offset["truth"][0.02]["gp"], np.asarray(gp), rtol=0, atol=1e-12)
