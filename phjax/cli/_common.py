@@ -115,7 +115,14 @@ def read_input(path, format: str = "auto", *, min_poses: int = 2):
         raise FileNotFoundError(2, "No such file or directory", str(path))
     if p.is_dir():
         raise IsADirectoryError(21, "Is a directory (expected a trajectory file)", str(path))
-    traj = read_trajectory(p, format=format)
+    try:
+        traj = read_trajectory(p, format=format)
+    except TrajectoryFormatError as e:  # name the command line's option, not the keyword
+        text = str(e)
+        if "pass format=" not in text:
+            raise
+        raise TrajectoryFormatError(text.replace("pass format= one of", "pass --format, one of"),
+                                    path=path) from None
     valid = np.isfinite(traj.quaternions).all(-1) | np.isfinite(traj.positions).all(-1)
     n = int(np.count_nonzero(valid))
     if n < min_poses:

@@ -24,7 +24,8 @@ BAD_FILES = [
     ("only lost frames", "1 nan nan nan nan nan nan nan\n2 nan nan nan nan nan nan nan\n",
      "0 pose(s) (2 lost frame(s)); at least 2"),
     ("binary", b"\x89PNG\r\n\x1a\n\xff\xfe\x00", "not a UTF-8 text file"),
-    ("undetectable", "1 2 3\n", "cannot detect the trajectory format"),
+    # the command line's own option, not the library's keyword
+    ("undetectable", "1 2 3\n", "first lines; pass --format, one of"),
 ]
 
 #: commands reading one trajectory file FILE (OUT: an output path in the temporary folder)
