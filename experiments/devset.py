@@ -80,6 +80,10 @@ def simulated_devset(seconds: float, quick: bool = False, rate: float = 30.0):
 
 
 if __name__ == "__main__":
+    import argparse
+
+    argparse.ArgumentParser(description="List the development set's recordings "
+                            "(python experiments/devset.py).").parse_args()
     for name, kind, t, p, _q in load_devset():
         print(f"{name:40s} {kind:7s} {t[-1] - t[0]:6.1f} s  {len(t):6d} samples  "
               f"positions: {np.isfinite(p).any()}")

@@ -33,6 +33,7 @@ tuned Kalman CV extrapolation on the same half.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import sys
 
@@ -198,7 +199,15 @@ def evaluate(ml: bool = False) -> dict[str, dict]:
     return out
 
 
-def main() -> int:
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--ml", action="store_true",
+                    help="also the maximum-likelihood IMM noise (about 1 min more)")
+    ap.add_argument("--tune", action="store_true",
+                    help="also tune the tracker by gradient on the stream's first half and "
+                    "score it on the second (about 6 min more)")
+    args = ap.parse_args(argv)
     _, est = load()
     noise = estimate_measurement_noise(est.times, est.positions, est.quaternions)
     print("estimated white measurement noise per axis: position "
@@ -206,12 +215,12 @@ def main() -> int:
           + " / ".join(f"{x:.3f}" for x in np.rad2deg(np.asarray(noise.rot_std))) + " deg "
           f"(RMS {float(noise.pos_meas_noise) * 1e3:.2f} mm, "
           f"{np.rad2deg(float(noise.rot_meas_noise)):.3f} deg)\n")
-    res = evaluate(ml="--ml" in sys.argv[1:])
+    res = evaluate(ml=args.ml)
     print("| stream | APE RMSE [mm] | mean | std | max |\n|---|---|---|---|---|")
     for k, v in res.items():
         print(f"| {k} | {v['rmse'] * 1e3:.2f} | {v['mean'] * 1e3:.2f} | {v['std'] * 1e3:.2f} "
               f"| {v['max'] * 1e3:.1f} |")
-    if "--tune" in sys.argv[1:]:
+    if args.tune:
         out = tune_split()
         print("\nsecond half, phjax / tuned Kalman CV extrapolation\n\n"
               "| config | pos RMSE | rot RMSE | pos jerk | rot jerk |\n|---|---|---|---|---|")

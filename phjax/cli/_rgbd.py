@@ -149,5 +149,5 @@ def add_commands(sub) -> None:
     p.add_argument("--gt-reference", action="store_true",
                    help="use the ground-truth pose of the first frame as the reference")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_noise_argument(p)
+    add_noise_argument(p, has_config=False)
     p.set_defaults(func=cmd_track_rgbd)

@@ -64,12 +64,14 @@ def _noise_value(text: str):
     return mm, deg
 
 
-def add_noise_argument(parser) -> None:
-    """Add ``--measurement-noise {config,auto,MM,DEG}`` to ``parser``."""
+def add_noise_argument(parser, has_config: bool = True) -> None:
+    """Add ``--measurement-noise {config,auto,MM,DEG}`` to ``parser`` (``has_config``: the
+    command also has ``--config``)."""
+    default = ("from --config or the built-in 5 mm / 1 deg sensor" if has_config
+               else "the built-in 5 mm / 1 deg sensor")
     parser.add_argument(
         "--measurement-noise", metavar="NOISE", default="config", type=_noise_value,
-        help="the filters' measurement noise: 'config' (default: from --config or the built-in "
-        "5 mm / 1 deg sensor), 'auto' (estimated from the input poses themselves, "
+        help=f"the filters' measurement noise: 'config' (default: {default}), 'auto' (estimated from the input poses themselves, "
         "phjax.tracking.estimate_measurement_noise: right for white noise such as a per-frame "
         "head-pose front-end; a SLAM estimate with frame-to-frame correlated errors is often "
         "better with the default) or 'MM,DEG' (position std in mm, orientation std in degrees)")

@@ -463,6 +463,9 @@ def kalman_extrapolation(
     positions.
 
     Arguments:
+        times, positions, quaternions, render_times: the measurements ``(n,)``, ``(n, 3)`` m,
+            ``(n, 4)`` wxyz (NaN rows: lost frames) and the render times ``(m,)``, s, as in
+            the module docs.
         config: :class:`phjax.KalmanConfig` (default: the tuned noise :data:`TUNED`
             ``["kalman"]``).
         lookahead: display-time prediction, s (default 0): the pose shown at ``tau`` is the one
@@ -543,6 +546,9 @@ def alpha_beta(
     ``exp(w (u - t)) q``).
 
     Arguments:
+        times, positions, quaternions, render_times: the measurements ``(n,)``, ``(n, 3)`` m,
+            ``(n, 4)`` wxyz (NaN rows: lost frames) and the render times ``(m,)``, s, as in
+            the module docs.
         alpha: position / angle gain in (0, 1] (the knob: smaller is smoother and later).
         beta: velocity gain; default ``alpha^2 / (2 - alpha)`` (Benedict-Bordner, the
             steady-state gains of a critically designed tracker).
@@ -607,6 +613,9 @@ def one_euro_extrapolation(
     ``min_cutoff``), plus
 
     Arguments:
+        times, positions, quaternions, render_times: the measurements ``(n,)``, ``(n, 3)`` m,
+            ``(n, 4)`` wxyz (NaN rows: lost frames) and the render times ``(m,)``, s, as in
+            the module docs.
         lookahead: display-time prediction, s (default 0): constant-velocity extrapolation of
             the One Euro output by this much more.
     """
@@ -635,6 +644,9 @@ def snapshot_interpolation(
     the pose holds). Smooth between frames, late by about ``delay``.
 
     Arguments:
+        times, positions, quaternions, render_times: the measurements ``(n,)``, ``(n, 3)`` m,
+            ``(n, 4)`` wxyz (NaN rows: lost frames) and the render times ``(m,)``, s, as in
+            the module docs.
         config: :class:`phjax.KalmanConfig` of the filter (the knob: its process noise;
             default :data:`TUNED` ``["kalman"]`` noise).
         delay: render delay, s (default: one camera period, the median frame interval).
@@ -693,6 +705,9 @@ def imm_extrapolation(
     visible.
 
     Arguments:
+        times, positions, quaternions, render_times: the measurements ``(n,)``, ``(n, 3)`` m,
+            ``(n, 4)`` wxyz (NaN rows: lost frames) and the render times ``(m,)``, s, as in
+            the module docs.
         config: :class:`phjax.tracking.imm.IMMConfig` (default model set).
         lookahead: display-time prediction, s (default 0), as in :func:`kalman_extrapolation`.
     """
