@@ -38,7 +38,11 @@ t_start = time.perf_counter()
 # %%
 gt = pj.synthetic_head_motion(duration=4.0, rate=120.0, seed=7)
 data = tuning.prepare_recordings([gt], seed=0)
-print("measurements:", data.times.shape[1], " render samples:", data.render_times.shape[1])
+# the arrays are padded to size classes (lost frames and masked render samples after the end),
+# so that recordings of other lengths reuse the compiled loss
+valid = np.isfinite(np.asarray(data.positions)).all(-1).sum()
+print(f"measured poses: {int(valid)} of {data.times.shape[1]} frames (dropouts and padding lost); "
+      f"scored render samples: {int(data.render_mask.sum())} of {data.render_times.shape[1]}")
 print("reference [pos RMSE mm, rot RMSE deg, pos jerk m/s^3, rot jerk rad/s^3]:",
       np.round(np.asarray(data.reference[0]) * [1e3, np.degrees(1), 1, 1], 3))
 
