@@ -36,8 +36,9 @@ def _lost_padding_frames(times, positions, quaternions):
 def _fill_padding(times, positions, quaternions, dtype):
     """One padded recording as the core expects it: times relative to the first frame, the
     padding frames (NaN time) turned into lost frames ``PAD_STEP`` apart after the last real
-    one, orientation-only data at a fixed point. Returns the arrays, the time origin, the last
-    real time (relative), the number of real frames and the orientation-only flag."""
+    one, orientation-only data at a fixed point, position-only data at the identity orientation.
+    Returns the arrays, the time origin, the last real time (relative), the number of real
+    frames and the flags ``(orientation_only, position_only)``."""
     valid = jnp.isfinite(times)
     n_valid = jnp.sum(valid)
     origin = jnp.where(n_valid > 0, times[0], 0)  # padding is trailing: frame 0 is real
@@ -48,17 +49,22 @@ def _fill_padding(times, positions, quaternions, dtype):
     nan = jnp.asarray(jnp.nan, dtype)
     p = jnp.where(valid[:, None], positions.astype(dtype), nan)
     q = jnp.where(valid[:, None], quaternions.astype(dtype), nan)
-    orientation_only = ~jnp.any(jnp.isfinite(p))
-    q_ok = jnp.all(jnp.isfinite(q), -1, keepdims=True)
+    p_ok = jnp.all(jnp.isfinite(p), -1, keepdims=True)
+    q_ok = jnp.all(jnp.isfinite(q), -1, keepdims=True) & (
+        jnp.sum(jnp.where(jnp.isfinite(q), q, 0) ** 2, -1, keepdims=True) > 0)
+    orientation_only = ~jnp.any(p_ok)
+    position_only = ~orientation_only & ~jnp.any(q_ok)
     p = jnp.where(orientation_only, jnp.where(q_ok, jnp.zeros_like(p), nan), p)
-    return t, p, q, origin, t_last.astype(dtype), n_valid, orientation_only
+    identity = jnp.asarray([1, 0, 0, 0], dtype)
+    q = jnp.where(position_only, jnp.where(p_ok, identity, nan), q)
+    return t, p, q, origin, t_last.astype(dtype), n_valid, (orientation_only, position_only)
 
 
 def _one(core, hold_end, config, times, positions, quaternions, render_times, dtype):
     """``core`` (the one-recording program of ``track`` or ``reconstruct``) on one padded
     recording, traceable; ``hold_end``: the core interpolates between frames, so render times
     are clamped to the last real frame."""
-    t, p, q, origin, t_last, n_valid, orientation_only = _fill_padding(
+    t, p, q, origin, t_last, n_valid, (orientation_only, position_only) = _fill_padding(
         times, positions, quaternions, dtype)
     r_ok = jnp.isfinite(render_times)
     r = jnp.where(r_ok, render_times - origin, 0).astype(dtype)
@@ -66,7 +72,8 @@ def _one(core, hold_end, config, times, positions, quaternions, render_times, dt
     out_p, out_q = core(config, t, p, q, jnp.minimum(r, t_last) if hold_end else r)
     bad = (~r_ok | (n_valid == 0))[:, None]
     nan = jnp.asarray(jnp.nan, dtype)
-    return (jnp.where(bad | orientation_only, nan, out_p), jnp.where(bad, nan, out_q))
+    return (jnp.where(bad | orientation_only, nan, out_p),
+            jnp.where(bad | position_only, nan, out_q))
 
 
 def _local(config, times, positions, quaternions, render_times, *, core, hold_end, dtype):

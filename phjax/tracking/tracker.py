@@ -528,13 +528,20 @@ def _prepare_recording(times, positions, quaternions, render_times):
         warnings.warn(f"dropping {int(dup.sum())} measurement(s) with duplicate timestamps "
                       "(keeping the first)", stacklevel=3)
         times, positions, quaternions = times[~dup], positions[~dup], quaternions[~dup]
-    orientation_only = not np.any(np.isfinite(positions))
+    # the filter initialises from a whole pose: data with one part only tracks that part against
+    # a fixed other part (a point / the identity), and the missing part is reported as NaN
+    p_ok = np.isfinite(positions).all(-1, keepdims=True)
+    q_ok = np.isfinite(quaternions).all(-1, keepdims=True) & (
+        np.sum(np.nan_to_num(quaternions) ** 2, -1, keepdims=True) > 0)
+    orientation_only = not np.any(p_ok)
+    position_only = not orientation_only and not np.any(q_ok)
     if orientation_only:
-        # the filter needs a position to initialise: track a fixed point, report NaN positions
-        positions = np.where(np.isfinite(quaternions).all(-1, keepdims=True), 0.0, np.nan)
-        positions = np.broadcast_to(positions, (times.shape[0], 3)).copy()
+        positions = np.broadcast_to(np.where(q_ok, 0.0, np.nan), (times.shape[0], 3)).copy()
+    if position_only:
+        quaternions = np.where(p_ok, np.array([1.0, 0.0, 0.0, 0.0]), np.nan)
     origin = times[0]
-    return times - origin, positions, quaternions, render_times - origin, orientation_only
+    return (times - origin, positions, quaternions, render_times - origin,
+            (orientation_only, position_only))
 
 
 def _run_recording(core, config, times, positions, quaternions, render_times, dtype,
@@ -543,7 +550,8 @@ def _run_recording(core, config, times, positions, quaternions, render_times, dt
     (:mod:`phjax.tracking._shapes`: one compiled program per class, not per length) and run the
     jitted ``core`` on it. ``hold_end``: the core interpolates between frames (render times past
     the last frame are clamped to it)."""
-    t, p, q, r, orientation_only = _prepare_recording(times, positions, quaternions, render_times)
+    t, p, q, r, (orientation_only, position_only) = _prepare_recording(
+        times, positions, quaternions, render_times)
     m = r.shape[0]
     t, p, q, r = pad_recording(t, p, q, r, hold_end=hold_end)
     dtype = jnp.zeros((), float).dtype if dtype is None else dtype
@@ -556,6 +564,8 @@ def _run_recording(core, config, times, positions, quaternions, render_times, dt
     out_p, out_q = out
     if orientation_only:
         out_p = jnp.full_like(out_p, jnp.nan)
+    if position_only:
+        out_q = jnp.full_like(out_q, jnp.nan)
     # sliced on the host: a slice of the JAX array would compile a program for every length
     return unpad_rows(out_p, m), unpad_rows(out_q, m)
 
@@ -619,7 +629,9 @@ def track(
             are fine).
         positions: measured positions, m; NaN rows are missing frames. If every position is
             NaN (orientation-only data) the orientation is tracked and positions are NaN.
-        quaternions: measured orientations wxyz; NaN rows are missing frames.
+        quaternions: measured orientations wxyz; NaN rows are missing frames. If no
+            orientation is valid (position-only data) the position is tracked and the
+            quaternions are NaN.
         render_times: times at which to render, s (any order).
         config: tracker configuration (default :class:`TrackerConfig()`), shared by the batch.
         dtype: computation dtype (default: JAX's default float; pass ``jnp.float64`` with x64

@@ -21,17 +21,19 @@ N_REC, N_FRAMES, N_PAD = 8, 150, 10
 
 def _recordings():
     """8 recordings of 150 frames at 30 Hz with 20 % dropped frames (NaN rows); recording 5 is
-    orientation-only, recording 2 starts at an epoch time; render times per recording at
+    orientation-only, recording 6 position-only, recording 2 starts at an epoch time; render times per recording at
     120 Hz from before the first frame to past the last."""
     recs = []
     for i in range(N_REC):
         t, p, q = pj.synthetic_head_motion(duration=5.3, rate=120.0, seed=i)
         if i == 5:
             p = np.full_like(p, np.nan)
+        if i == 6:
+            q = np.full_like(q, np.nan)
         mt, mp, mq = (np.asarray(x, np.float64) for x in pj.simulate_measurements(
             i, t, p, q, pj.SensorModel(dropout=0.2)))
         mt, mp, mq = mt[:N_FRAMES], mp[:N_FRAMES], mq[:N_FRAMES]
-        assert mt.size == N_FRAMES and np.isnan(mq[:, 0]).sum() > 10
+        assert mt.size == N_FRAMES and np.isnan((mq if i != 6 else mp)[:, 0]).sum() > 10
         r = np.arange(-0.05, mt[-1] - mt[0] + 0.1, 1 / 120.0)[: 600 - 7 * i] + mt[0]
         if i == 2:
             mt, r = mt + 1.7e9, r + 1.7e9
@@ -84,6 +86,7 @@ def test_sharded_batch_equals_one_at_a_time(tmp_path):
             sp, sq = (np.asarray(x) for x in fn(mt, mp, mq, r))
             rp[i, :r.size], rq[i, :r.size] = sp, sq
         assert np.isnan(rp[5]).all() and np.isfinite(rq[5, 10:len(recs[5][3])]).all()
+        assert np.isnan(rq[6]).all() and np.isfinite(rp[6, 10:len(recs[6][3])]).all()
         ref[name + "_p"], ref[name + "_q"] = rp, rq
     data = tmp_path / "batch.npz"
     np.savez(data, times=times, positions=pos, quaternions=quat, render_times=render, **ref)

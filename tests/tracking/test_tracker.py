@@ -258,6 +258,22 @@ def test_orientation_only_input(head):
     assert np.all(np.isfinite(np.asarray(Q)))
 
 
+@pytest.mark.parametrize("missing", ["nan", "zero"])
+def test_position_only_input_tracks_the_position(head, missing):
+    """Data without a valid orientation (NaN or zero quaternions: a 3-DoF position tracker) is
+    tracked in position, equal to the same positions with a fixed orientation (the channels
+    are independent), and reports NaN quaternions; before this the whole output was NaN."""
+    _, _, _, mt, mp, _ = head
+    r = np.linspace(mt[0], mt[-1], 200)
+    fixed = np.tile([1.0, 0, 0, 0], (len(mt), 1))
+    none = np.full_like(fixed, np.nan) if missing == "nan" else np.zeros_like(fixed)
+    for fn in (pj.track, pj.reconstruct):
+        P, Q = (np.asarray(x) for x in fn(mt, mp, none, r, dtype=jnp.float64))
+        P0, _ = (np.asarray(x) for x in fn(mt, mp, fixed, r, dtype=jnp.float64))
+        assert np.all(np.isnan(Q)) and np.all(np.isfinite(P))
+        np.testing.assert_allclose(P, P0, rtol=0, atol=1e-12)
+
+
 @st.composite
 def messy_stream(draw):
     n = draw(st.sampled_from([12, 32]))  # few shapes: few compilations
