@@ -152,8 +152,9 @@ class LiveStream(TrackerStream):
             config = list(config)
             for i in self._noise_leaves:
                 config[i] = config[i] * dt(noise_scale)
-        self._leaves = self._late(config, self._leaves, dt(t_measured), dt(t_now),
-                                  np.asarray(position, dt), np.asarray(quaternion, dt))
+        position, quaternion = self._complete(np.asarray(position, dt), np.asarray(quaternion, dt))
+        self._leaves = self._late(config, self._leaves, dt(t_measured), dt(t_now), position,
+                                  quaternion)
 
 
 #: innovation gate of live configs: chi-square, 3 dof, p = 0.001

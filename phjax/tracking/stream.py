@@ -40,7 +40,12 @@ from .tracker import (
     tracker_init,
 )
 
-__all__ = ["TrackerStream"]
+__all__ = ["PARTIAL_FRAMES", "TrackerStream"]
+
+#: measurements with one part of the pose (and the other never seen) after which a stream takes
+#: the missing part as fixed (:class:`TrackerStream`): a third of a second at 30 Hz, so that a
+#: frame that lost only its position at the start does not pin a 6-DoF source to the origin
+PARTIAL_FRAMES = 10
 
 
 @functools.cache
@@ -94,6 +99,15 @@ class TrackerStream:
             background thread, used from the update after it is ready (a few seconds; one CPU
             core busy meanwhile). ``False``: the optimised program at once.
 
+    **Sources that measure one part of the pose.** The filter starts from a whole pose. When
+    :data:`PARTIAL_FRAMES` measurements have brought an orientation but never a position (a
+    3-DoF head tracker, an orientation-only trace), the stream takes the position to be the
+    origin from then on (and the identity orientation for position-only sources), so that it
+    starts and renders that part fixed instead of waiting forever; :attr:`measured_parts` says
+    which parts have been measured. A source that measures both from the start (or within
+    those frames) is not affected. :func:`phjax.track` reports the never-measured part as NaN
+    instead.
+
     Example::
 
         stream = phjax.TrackerStream()
@@ -112,8 +126,34 @@ class TrackerStream:
         self._state_def = jax.tree.structure(state)
         self._segment_def = jax.tree.structure(state.segment)
         self._n_filter = len(jax.tree.leaves(state.filter))  # the segment's leaves follow
+        self._seen = [False, False]  # position, orientation measured
+        self._partial = 0  # measurements with one part only, while the other is unseen
         self.set_config(config)
         self.state = state
+
+    @property
+    def measured_parts(self) -> tuple[bool, bool]:
+        """``(position, orientation)``: whether a valid one has been measured so far."""
+        return self._seen[0], self._seen[1]
+
+    def _complete(self, position: np.ndarray, quaternion: np.ndarray):
+        """A host measurement with the never-measured part of a one-part source filled in (the
+        origin / the identity; class docs), else unchanged."""
+        if self._seen[0] and self._seen[1]:  # a 6-DoF source: nothing to check any more
+            return position, quaternion
+        p_ok = bool(np.isfinite(position).all())
+        q_ok = bool(np.isfinite(quaternion).all() and np.dot(quaternion, quaternion) > 0)
+        self._seen[0] |= p_ok
+        self._seen[1] |= q_ok
+        other_seen = self._seen[0] if q_ok else self._seen[1]
+        if p_ok != q_ok and not other_seen:  # one part only, and the other never seen
+            self._partial += 1
+            if self._partial >= PARTIAL_FRAMES:
+                if q_ok:
+                    position = np.zeros(3, position.dtype)
+                else:
+                    quaternion = np.array([1, 0, 0, 0], quaternion.dtype)
+        return position, quaternion
 
     def set_config(self, config: TrackerConfig) -> None:
         """Use another config (one of the same structure does not recompile)."""
@@ -153,6 +193,7 @@ class TrackerStream:
         if not isinstance(t, jax.Array):  # host values: one input signature for every call
             t, position, quaternion = (self._scalar(t), np.asarray(position, self.dtype),
                                        np.asarray(quaternion, self.dtype))
+            position, quaternion = self._complete(position, quaternion)
         self._leaves = self._update(self._config_leaves, self._leaves, t, position, quaternion)
 
     def wait_compiled(self, timeout: float | None = None) -> bool:

@@ -110,6 +110,28 @@ def _run(source, rate, duration=None, **kw):
     return lt, got
 
 
+def test_orientation_only_source_is_sent_with_the_position_at_the_origin(tmp_path):
+    """A 3-DoF pose source (every position NaN, e.g. a VR head trace) sent nothing at all
+    (the stream waited for a whole pose); now it sends from its ``PARTIAL_FRAMES``-th frame on,
+    never a NaN, positions exactly 0 and orientations as a 6-DoF source at the origin that
+    starts at that frame sends them."""
+    from phjax.tracking.stream import PARTIAL_FRAMES
+
+    k = PARTIAL_FRAMES - 1
+    t, p, q = smooth_motion(90, 30.0, seed=2)  # 3 s
+    lt, got = _run(PoseReplaySource(t, np.full_like(p, np.nan), q), 120.0)
+    q_ref, p_ref = q.copy(), np.zeros_like(p)
+    q_ref[:k], p_ref[:k] = np.nan, np.nan  # the frames before the stream starts: lost
+    _, ref = _run(PoseReplaySource(t, p_ref, q_ref), 120.0)
+    assert lt.error is None and len(got) == len(ref) > 0.9 * 120 * (t[-1] - t[k])
+    ts = np.array([s.t for s in got])
+    pos = np.array([s.position for s in got])
+    quat = np.array([s.quaternion for s in got])
+    assert ts[0] >= t[k] - t[0] - 1e-9 and np.isfinite(quat).all() and np.all(pos == 0.0)
+    np.testing.assert_array_equal(ts, [s.t for s in ref])
+    np.testing.assert_allclose(quat, [s.quaternion for s in ref], rtol=0, atol=1e-6)
+
+
 def test_face_lost_coasts_then_holds_never_nan(tmp_path):
     t, p, q = smooth_motion(300, 30.0, seed=1)  # 10 s
     lost = (t > 4.0) & (t < 7.0)

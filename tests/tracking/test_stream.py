@@ -197,3 +197,44 @@ def test_bad_shapes_raise_clear_errors(bad):
     with pytest.raises(ValueError, match="must have shape"):
         pj.tracker_update(pj.TrackerConfig(), pj.tracker_init(), args["t"], args["position"],
                           args["quaternion"])
+
+
+def test_one_part_sources_start_after_partial_frames_with_the_other_part_fixed():
+    """An orientation-only (3-DoF) source rendered NaN forever (the filter starts from a whole
+    pose); now after ``PARTIAL_FRAMES`` such frames the position is the origin and the
+    orientation is tracked, as the stream of the same orientations with zero positions does
+    from then on. Likewise position-only sources at the identity. A 6-DoF source whose first
+    frames lost one part is not pinned: it equals the stream that never saw those frames."""
+    from phjax.tracking.stream import PARTIAL_FRAMES
+
+    # every frame measured (no dropouts), so that the frame that starts each stream is known
+    t, p, q = (np.asarray(x, np.float32)[::4] for x in simulate.synthetic_head_motion(
+        duration=1.0, rate=120.0, seed=4))
+    k = PARTIAL_FRAMES
+    r = t[k + 5] + 0.01
+    nan_p, nan_q = np.full(3, np.nan, np.float32), np.full(4, np.nan, np.float32)
+    for part in ("orientation", "position"):
+        s, ref = pj.TrackerStream(), pj.TrackerStream()
+        for i in range(k + 6):
+            if part == "orientation":
+                s.update(t[i], nan_p, q[i])
+                if i >= k - 1:
+                    ref.update(t[i], np.zeros(3, np.float32), q[i])
+            else:
+                s.update(t[i], p[i], nan_q)
+                if i >= k - 1:
+                    ref.update(t[i], p[i], np.array([1, 0, 0, 0], np.float32))
+            if i == k - 2:  # one frame short: still waiting
+                assert np.isnan(np.asarray(s.sample(t[i] + 0.01)[0])).all()
+        got, want = (np.asarray(x) for x in s.sample(r)), (np.asarray(x) for x in ref.sample(r))
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+        assert s.measured_parts == ((False, True) if part == "orientation" else (True, False))
+    s, ref = pj.TrackerStream(), pj.TrackerStream()
+    for i in range(k + 6):
+        s.update(t[i], nan_p if i < k - 1 else p[i], q[i])
+        if i >= k - 1:
+            ref.update(t[i], p[i], q[i])
+    for a, b in zip(s.sample(r), ref.sample(r)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert s.measured_parts == (True, True)
