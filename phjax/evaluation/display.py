@@ -41,6 +41,7 @@ from ..tracking.baselines import TUNED
 from ..tracking.imm import IMMConfig
 from ..tracking.kalman import KalmanConfig
 from ..tracking.tracker import TrackerConfig, track
+from ._plot import legend_on_first_labelled
 from .metrics import (
     position_rmse,
     rms_jerk_position,
@@ -510,7 +511,7 @@ def plot_choices(comp: DisplayComparison, path: str | Path) -> Path:
             ax.set_ylabel(f"{ch} RMSE [{unit}] at the display time")
             ax.set_title(f"{ch}, lookahead {1e3 * L:g} ms")
             ax.grid(True, which="both", alpha=0.3)
-    axes[0, 0].legend(fontsize=7, loc="upper right")
+    legend_on_first_labelled(axes, fontsize=7, loc="upper right")
     fig.suptitle("RMSE at the display time against RMS jerk; lower left is better. Each line "
                  "sweeps a baseline's knob; circle = its tuned knob; filled square = its best "
                  "knob as smooth as phjax\n(dotted line); open square = its smoothest knob when "

@@ -28,6 +28,7 @@ from ..tracking import baselines
 from ..tracking.baselines import TUNED
 from ..tracking.kalman import KalmanConfig
 from ..tracking.tracker import TrackerConfig, reconstruct, track
+from ._plot import legend_on_first_labelled
 from .metrics import evaluate as evaluate_metrics
 
 __all__ = [
@@ -414,7 +415,7 @@ def plot_evaluation(
         if not drawn:
             ax.text(0.5, 0.5, f"no {kind} data", ha="center", va="center", transform=ax.transAxes)
         ax.grid(True, which="both", alpha=0.3)
-    axes[0, 0].legend(fontsize=7, loc="best")
+    legend_on_first_labelled(axes[0], fontsize=7, loc="best")
 
     ax = axes[1, 0]
     y = np.arange(len(order))

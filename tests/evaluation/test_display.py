@@ -104,10 +104,15 @@ def test_format_choices_rows_and_verdict():
             "(at least 2.67x phjax's jerk)") in text
 
 
-def test_plot_choices_writes_the_frontier(tmp_path):
+@pytest.mark.parametrize("has_pos", [True, False])
+def test_plot_choices_writes_the_frontier(tmp_path, has_pos):
     pytest.importorskip("matplotlib")
-    ph = _metrics(0.006, 1.5, 3000, 15000)
-    sweep = [(k, k, _metrics(0.006 + 0.002 / k, 1.4 + 0.1 / k, 9000 + 1000 / k, 40000 + 4000 / k))
+    import warnings
+
+    nan = float("nan")
+    ph = _metrics(0.006 if has_pos else nan, 1.5, 3000 if has_pos else nan, 15000)
+    sweep = [(k, k, _metrics(0.006 + 0.002 / k if has_pos else nan, 1.4 + 0.1 / k,
+                             9000 + 1000 / k if has_pos else nan, 40000 + 4000 / k))
              for k in (0.1, 0.3, 1.0, 3.0)]
     rows = [Choice("phjax (causal)", "phjax", (0.028, 0.028), ph),
             Choice("kalman-cv extrapolation", "tuned", (1.0, 1.0), sweep[2][2]),
@@ -115,5 +120,7 @@ def test_plot_choices_writes_the_frontier(tmp_path):
                    reached=(False, False))]
     comp = DisplayComparison((0.0, 0.03), {0.0: rows, 0.03: rows},
                              {L: {"kalman-cv extrapolation": sweep} for L in (0.0, 0.03)}, 0.028)
-    path = plot_choices(comp, tmp_path / "f.png")
+    with warnings.catch_warnings():  # orientation-only data: no empty-legend warning
+        warnings.simplefilter("error", UserWarning)
+        path = plot_choices(comp, tmp_path / "f.png")
     assert path.stat().st_size > 10_000

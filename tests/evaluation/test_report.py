@@ -119,7 +119,11 @@ def test_plot_is_written_with_the_four_panels(tmp_path, monkeypatch, has_pos):
         return original(self, *args, **kwargs)
 
     monkeypatch.setattr(Figure, "savefig", spy)
-    path = plot_evaluation(_result(has_pos), tmp_path / "eval.png")
+    import warnings
+
+    with warnings.catch_warnings():  # no matplotlib warning, e.g. an empty legend without positions
+        warnings.simplefilter("error", UserWarning)
+        path = plot_evaluation(_result(has_pos), tmp_path / "eval.png")
     assert path.exists() and path.stat().st_size > 10_000
     (fig,) = seen
     axes = fig.axes
