@@ -94,6 +94,7 @@ __all__ = [
     "read_biwi_pose",
     "biwi_pose_to_quaternion",
     "read_trajectory",
+    "split_trajectory_name",
     "detect_format",
     "write_tum",
     "write_euroc",
@@ -279,6 +280,17 @@ def _check_values(
     zero = ~np.any(np.isnan(q), axis=-1) & (np.linalg.norm(q, axis=-1) < _ZERO_NORM)
     if (ln := first(zero)) is not None:
         raise _err(path, ln, f"zero-norm {labels[2]}")
+
+
+def split_trajectory_name(spec: PathLike) -> tuple[str, str | None]:
+    """``(path, name)`` of a command line's ``FILE#NAME`` (the trajectory ``NAME`` of a file
+    holding several, see :func:`read_trajectory`); ``(spec, None)`` when ``spec`` is an existing
+    file or has no ``#``."""
+    spec = os.fspath(spec)
+    if "#" in spec and not os.path.exists(spec):
+        path, name = spec.rsplit("#", 1)
+        return path, name
+    return spec, None
 
 
 def _canonicalise(t: np.ndarray, p: np.ndarray, q: np.ndarray, source: str) -> Trajectory:
@@ -805,23 +817,40 @@ def detect_format(path: PathLike) -> str:
     )
 
 
-def read_trajectory(path: PathLike, format: str = "auto") -> Trajectory:
-    """Read a single-trajectory file, detecting the format when ``format="auto"``.
+def read_trajectory(path: PathLike, format: str = "auto", name: str | None = None) -> Trajectory:
+    """Read one trajectory from a file, detecting the format when ``format="auto"``.
 
     Arguments:
         path: the file.
         format: ``"auto"`` or one of ``"tum"``, ``"euroc"``, ``"csv"``, ``"corbillon"``,
-            ``"hachaj"`` (CWI and AVTrack360 files hold several trajectories: use
-            :func:`read_cwi` / :func:`read_avtrack360`).
+            ``"hachaj"``, ``"cwi"``, ``"avtrack360"``.
+        name: for the files that hold several trajectories, the one to read: a CWI
+            navigation CSV's participant (``"P01_V1"``), an AVTrack360 JSON's video
+            (``"6.mp4"``); required there (the error lists the names), not allowed elsewhere.
+            :func:`read_cwi` / :func:`read_avtrack360` read them all.
 
     Returns:
-        The :class:`Trajectory`.
+        The :class:`Trajectory` (warnings about the file's other trajectories are not shown).
     """
     fmt = detect_format(path) if format == "auto" else format
     if fmt in ("cwi", "avtrack360"):
-        raise ValueError(
-            f"{os.fspath(path)} is a {fmt} file holding several trajectories; use read_{fmt}()"
-        )
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            several = read_cwi(path) if fmt == "cwi" else read_avtrack360(path)
+        if name not in several:
+            names = list(several)
+            shown = ", ".join(names[:8]) + (f", ... ({len(names)} in all)" if len(names) > 8
+                                            else "")
+            what = (f"no trajectory named {name!r}" if name is not None
+                    else f"a {fmt} file holding {len(names)} trajectories")
+            raise _err(path, None, f"{what}; pass name= one of: {shown}")
+        for w in seen:  # the selected trajectory's warnings only
+            if f"[{name}]" in str(w.message):
+                warnings.warn(w.message, w.category, stacklevel=2)
+        return several[name]
+    if name is not None:
+        raise _err(path, None, f"name= selects one of several trajectories (CWI, AVTrack360 "
+                   f"files); this is a {fmt} file holding one")
     if fmt not in _READERS:
         raise ValueError(
             f"{os.fspath(path)}: unknown format {format!r}; expected 'auto' or one of "

@@ -448,8 +448,38 @@ def test_read_cwi_participant_and_rate():
     with pytest.raises(ValueError, match="rate"):
         io.read_cwi(path, rate=0.0)
     assert io.detect_format(path) == "cwi"
-    with pytest.raises(ValueError, match="read_cwi"):
-        io.read_trajectory(path)
+
+
+def test_read_trajectory_names_one_of_several():
+    """``read_trajectory(name=...)`` reads one trajectory of a CWI / AVTrack360 file (equal to
+    the multi-trajectory readers' entry), lists the names when none or an unknown one is given,
+    refuses a name for a one-trajectory file, and shows only the selected trajectory's warnings
+    (subject 10's ``4.mp4`` has a duplicate timestamp, ``6.mp4`` none)."""
+    import warnings
+
+    cwi = shared_path("vr_cwi_6dof_navigation", "H1_longdress_nav.csv")
+    one = io.read_trajectory(cwi, name="P03_V1")
+    np.testing.assert_array_equal(one.positions, io.read_cwi(cwi)["P03_V1"].positions)
+    with pytest.raises(io.TrajectoryFormatError,
+                       match=r"holding 27 trajectories; pass name= one of: P01_V1, P02_V1"):
+        io.read_trajectory(cwi)
+    with pytest.raises(io.TrajectoryFormatError, match="no trajectory named 'P99'"):
+        io.read_trajectory(cwi, name="P99")
+    tum = shared_path("tum_rgbd_groundtruth", "fr1_xyz-groundtruth.txt")
+    with pytest.raises(io.TrajectoryFormatError, match="this is a tum file holding one"):
+        io.read_trajectory(tum, name="x")
+    avt = shared_path("vr_avtrack360", "subject10_head_rotation.json")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", TrajectoryWarning)
+        six = io.read_trajectory(avt, name="6.mp4")
+    with pytest.warns(TrajectoryWarning, match=r"4\.mp4.*dropped 1 sample"):
+        four = io.read_trajectory(avt, name="4.mp4")
+    with pytest.warns(TrajectoryWarning):
+        every = io.read_avtrack360(avt)
+    np.testing.assert_array_equal(six.quaternions, every["6.mp4"].quaternions)
+    np.testing.assert_array_equal(four.times, every["4.mp4"].times)
+    assert io.split_trajectory_name(f"{cwi}#P03_V1") == (str(cwi), "P03_V1")
+    assert io.split_trajectory_name(tum) == (str(tum), None)
 
 
 # ------------------------------------------------------------------------------------------------

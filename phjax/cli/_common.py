@@ -93,8 +93,12 @@ def format_user_error(err: BaseException) -> str:
 def read_input(path, format: str = "auto", *, min_poses: int = 2):
     """Read a trajectory file through :func:`phjax.io.read_trajectory` for a command.
 
+    Files that hold several trajectories (CWI navigation CSVs: one per participant; AVTrack360
+    JSONs: one per video) are named ``FILE#NAME`` (``H1_longdress_nav.csv#P01_V1``,
+    ``subject10_head_rotation.json#6.mp4``); without ``#NAME`` the error lists the names.
+
     Arguments:
-        path: the file named on the command line.
+        path: the file named on the command line (``FILE`` or ``FILE#NAME``).
         format: ``"auto"`` or a :mod:`phjax.io` format name.
         min_poses: the least number of samples with a valid position or quaternion (lost
             frames do not count).
@@ -108,21 +112,25 @@ def read_input(path, format: str = "auto", *, min_poses: int = 2):
     """
     import numpy as np
 
-    from ..io import TrajectoryFormatError, read_trajectory
+    from ..io import TrajectoryFormatError, read_trajectory, split_trajectory_name
 
-    p = Path(path)
+    spec, name = split_trajectory_name(path)
+    p = Path(spec)
     if not p.exists():
-        raise FileNotFoundError(2, "No such file or directory", str(path))
+        raise FileNotFoundError(2, "No such file or directory", spec)
     if p.is_dir():
-        raise IsADirectoryError(21, "Is a directory (expected a trajectory file)", str(path))
+        raise IsADirectoryError(21, "Is a directory (expected a trajectory file)", spec)
     try:
-        traj = read_trajectory(p, format=format)
-    except TrajectoryFormatError as e:  # name the command line's option, not the keyword
+        traj = read_trajectory(p, format=format, name=name)
+    except TrajectoryFormatError as e:  # the command line's spelling, not the keywords
         text = str(e)
-        if "pass format=" not in text:
+        for kw, cli in (("pass format= one of", "pass --format, one of"),
+                        ("pass name= one of:", "name one as FILE#NAME, NAME one of:"),
+                        ("name= selects", "FILE#NAME selects")):
+            text = text.replace(kw, cli)
+        if text == str(e):
             raise
-        raise TrajectoryFormatError(text.replace("pass format= one of", "pass --format, one of"),
-                                    path=path) from None
+        raise TrajectoryFormatError(text, path=path) from None
     valid = np.isfinite(traj.quaternions).all(-1) | np.isfinite(traj.positions).all(-1)
     n = int(np.count_nonzero(valid))
     if n < min_poses:

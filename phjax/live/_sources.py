@@ -157,13 +157,20 @@ class PoseReplaySource(Source):
 
     @classmethod
     def from_file(cls, path) -> PoseReplaySource:
-        from ..io import read_trajectory
+        from ..io import read_trajectory, split_trajectory_name
 
-        path = Path(path)
+        spec, name = split_trajectory_name(path)  # FILE#NAME: one of several (CWI, AVTrack360)
+        path = Path(spec)
         if not path.is_file():
             raise SourceError(f"pose file not found: {path}")
-        traj = read_trajectory(path)
-        return cls(traj.times, traj.positions, traj.quaternions, name=f"poses {path}")
+        try:
+            traj = read_trajectory(path, name=name)
+        except ValueError as e:  # a bad file, or FILE#NAME missing / wrong: one line
+            raise SourceError(str(e).replace("pass name= one of:", "name one as poses:FILE#NAME, "
+                                             "NAME one of:").replace("name= selects", "#NAME selects")
+                              ) from None
+        return cls(traj.times, traj.positions, traj.quaternions,
+                   name=f"poses {path}" + (f"#{name}" if name else ""))
 
     def run(self, clock, t0, stop, emit) -> None:
         t_first = self.times[0]

@@ -196,3 +196,21 @@ def test_work_that_fits_is_not_refused(monkeypatch):
     common.check_fits({"--rate 120 Hz over 3600 s": (120 * 3600, 512)})
     with pytest.raises(ValueError, match="more than half of this machine's 1 GiB"):
         common.check_fits({"--rate 1e5 Hz over 3600 s": (1e5 * 3600, 512)})
+
+
+def test_several_trajectory_files_are_named_file_hash_name(tmp_path, capsys):
+    """A CWI / AVTrack360 file holds several trajectories: ``FILE#NAME`` picks one (the same
+    trajectory as ``phjax.io.read_trajectory(name=...)``); ``FILE`` alone, an unknown name, or
+    ``#NAME`` on a one-trajectory file is one line naming ``FILE#NAME`` and the choices."""
+    from conftest import shared_path
+
+    cwi = shared_path("vr_cwi_6dof_navigation", "H1_longdress_nav.csv")
+    out = tmp_path / "out.txt"
+    rc, stdout, err = _run(capsys, ["smooth", f"{cwi}#P03_V1", "-o", str(out), "--offline"])
+    assert rc == 0 and out.exists(), err
+    for spec, part in ((str(cwi), "holding 27 trajectories; name one as FILE#NAME, NAME one of: "
+                        "P01_V1"), (f"{cwi}#P99", "no trajectory named 'P99'"),
+                       (f"{shared_path('tum_rgbd_groundtruth', 'fr1_xyz-groundtruth.txt')}#a",
+                        "FILE#NAME selects one of several trajectories")):
+        rc, stdout, err = _run(capsys, ["smooth", spec, "-o", str(tmp_path / "x.txt")])
+        _assert_one_line_error(rc, stdout, err, part, "phjax smooth: error:")

@@ -11,6 +11,7 @@ import time
 import jax
 import numpy as np
 import pytest
+from conftest import shared_path
 from live_helpers import UdpListener, angle_steps, listener, model_cache, smooth_motion  # noqa: F401
 
 from phjax.cli import main
@@ -106,6 +107,9 @@ def test_acceptance_synthetic_opentrack(listener, model_cache, tmp_path, cli_jax
      "cannot use local port"),
     (["live", "poses:{poses}", "--log", "/nonexistent/dir/x.tum"], "cannot write the log"),
     (["live", "poses:{poses}", "--rate", "0"], "rate"),
+    (["live", "poses:{poses}#P01_V1"], "#NAME selects one of several"),
+    (["live", "poses:{cwi}"], "holding 27 trajectories; name one as poses:FILE#NAME"),
+    (["live", "poses:{cwi}#P99"], "no trajectory named 'P99'"),
 ])
 def test_bad_input_exits_2(argv, message, tmp_path, capsys):
     poses = tmp_path / "p.tum"
@@ -115,7 +119,9 @@ def test_bad_input_exits_2(argv, message, tmp_path, capsys):
     busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     busy.bind(("", 0))
     try:
-        args = [a.format(poses=poses, busy=busy.getsockname()[1]) for a in argv]
+        cwi = (shared_path("vr_cwi_6dof_navigation", "H1_longdress_nav.csv")
+               if "{cwi}" in " ".join(argv) else None)
+        args = [a.format(poses=poses, busy=busy.getsockname()[1], cwi=cwi) for a in argv]
         assert main(args) == 2
     finally:
         busy.close()
