@@ -153,8 +153,9 @@ class LiveStream(TrackerStream):
             for i in self._noise_leaves:
                 config[i] = config[i] * dt(noise_scale)
         position, quaternion = self._complete(np.asarray(position, dt), np.asarray(quaternion, dt))
-        self._leaves = self._late(config, self._leaves, dt(t_measured), dt(t_now), position,
-                                  quaternion)
+        t_measured = self._relative(t_measured)  # sets the origin when unset
+        self._leaves = self._late(config, self._leaves, t_measured, self._relative(t_now),
+                                  position, quaternion)
 
 
 #: innovation gate of live configs: chi-square, 3 dof, p = 0.001

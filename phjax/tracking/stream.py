@@ -91,7 +91,10 @@ class TrackerStream:
 
     Arguments:
         config: tracker configuration (default :class:`phjax.TrackerConfig()`).
-        t: start time, s.
+        t: start time, s: the origin of the state's times (default: the first update's time).
+            Times are given to :meth:`update` and :meth:`sample` as they come (absolute epoch
+            times too) and subtracted from the origin in float64 before the float32 state sees
+            them, which would round a time of 1.7e9 s to 128 s.
         dtype: floating dtype of the state (default float32, the real-time precision; float64
             needs ``jax_enable_x64``).
         fast_start: compile the first update quickly (XLA ``-O0``: on a 2-core CPU 2.2 s
@@ -115,10 +118,12 @@ class TrackerStream:
         p, q = stream.sample(t_render)                      # render loop
     """
 
-    def __init__(self, config: TrackerConfig | None = None, t: float = 0.0, dtype=jnp.float32,
-                 fast_start: bool = True):
+    def __init__(self, config: TrackerConfig | None = None, t: float | None = None,
+                 dtype=jnp.float32, fast_start: bool = True):
         config = TrackerConfig() if config is None else config
-        state = tracker_init(config, t, dtype)
+        state = tracker_init(config, 0.0, dtype)
+        #: the time (s) the state's times are relative to (``t``, else the first update's time)
+        self.origin: float | None = None if t is None else float(t)
         #: the floating dtype of the state
         self.dtype = state.segment.start.dtype
         self._fast_start = fast_start
@@ -169,9 +174,20 @@ class TrackerStream:
             return _tiered_on_leaves(fn, self._config_def, self._state_def, self.dtype)
         return _on_leaves(fn, self._config_def, self._state_def)
 
+    def _relative(self, t) -> np.floating:
+        """A host time relative to :attr:`origin` (set by the first call when unset), in the
+        state's dtype."""
+        if np.ndim(t) != 0:
+            raise ValueError(f"tracker update: t must have shape (), got {np.shape(t)}")
+        t = float(t)
+        if self.origin is None:
+            self.origin = t
+        return self._scalar(t - self.origin)
+
     @property
     def state(self) -> TrackerState:
-        """The current :class:`phjax.TrackerState` (settable: the stream continues from it)."""
+        """The current :class:`phjax.TrackerState` (settable: the stream continues from it); its
+        times are relative to :attr:`origin`."""
         return jax.tree.unflatten(self._state_def, self._leaves)
 
     @state.setter
@@ -191,9 +207,11 @@ class TrackerStream:
             quaternion: measured orientation wxyz (NaN if missing; sign irrelevant).
         """
         if not isinstance(t, jax.Array):  # host values: one input signature for every call
-            t, position, quaternion = (self._scalar(t), np.asarray(position, self.dtype),
+            t, position, quaternion = (self._relative(t), np.asarray(position, self.dtype),
                                        np.asarray(quaternion, self.dtype))
             position, quaternion = self._complete(position, quaternion)
+        else:  # device values: relative to the origin already (0 unless set)
+            self.origin = 0.0 if self.origin is None else self.origin
         self._leaves = self._update(self._config_leaves, self._leaves, t, position, quaternion)
 
     def wait_compiled(self, timeout: float | None = None) -> bool:
@@ -214,4 +232,6 @@ class TrackerStream:
         Returns:
             ``(position (*T, 3), quaternion (*T, 4))``; NaN before the first valid measurement.
         """
+        if not isinstance(t_render, jax.Array):
+            t_render = (np.asarray(t_render, np.float64) - (self.origin or 0.0)).astype(self.dtype)
         return _sample_on_leaves(self._segment_def)(self._leaves[self._n_filter:], t_render)

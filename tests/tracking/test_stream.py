@@ -214,7 +214,7 @@ def test_one_part_sources_start_after_partial_frames_with_the_other_part_fixed()
     r = t[k + 5] + 0.01
     nan_p, nan_q = np.full(3, np.nan, np.float32), np.full(4, np.nan, np.float32)
     for part in ("orientation", "position"):
-        s, ref = pj.TrackerStream(), pj.TrackerStream()
+        s, ref = pj.TrackerStream(t=0.0), pj.TrackerStream(t=0.0)  # one time origin
         for i in range(k + 6):
             if part == "orientation":
                 s.update(t[i], nan_p, q[i])
@@ -230,7 +230,7 @@ def test_one_part_sources_start_after_partial_frames_with_the_other_part_fixed()
         for a, b in zip(got, want):
             np.testing.assert_array_equal(a, b)
         assert s.measured_parts == ((False, True) if part == "orientation" else (True, False))
-    s, ref = pj.TrackerStream(), pj.TrackerStream()
+    s, ref = pj.TrackerStream(t=0.0), pj.TrackerStream(t=0.0)
     for i in range(k + 6):
         s.update(t[i], nan_p if i < k - 1 else p[i], q[i])
         if i >= k - 1:
@@ -238,3 +238,21 @@ def test_one_part_sources_start_after_partial_frames_with_the_other_part_fixed()
     for a, b in zip(s.sample(r), ref.sample(r)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert s.measured_parts == (True, True)
+
+
+def test_epoch_times_in_a_float32_stream_equal_relative_times(meas):
+    """Times are taken relative to the stream's origin (the first update's time) in float64
+    before the float32 state sees them: a stream fed Unix epoch times equals one fed times
+    from 0 (float32 rounds 1.7e9 s to 128 s: the stream rendered 0.14 m where it should
+    render 0.29 m before)."""
+    t, p, q = (np.asarray(x) for x in meas[:3])
+    epoch = 1.7e9 + 0.123
+    a, b = pj.TrackerStream(), pj.TrackerStream(t=0.0)
+    for i in range(40):
+        a.update(epoch + t[i], p[i], q[i])
+        b.update(t[i], p[i], q[i])
+    assert a.origin == epoch + t[0] and b.origin == 0.0
+    r = t[39] + np.array([0.0, 0.004, 0.02])
+    for x, y in zip(a.sample(epoch + r), b.sample(r)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=2e-6)
+    assert np.isfinite(np.asarray(a.sample(epoch + r)[0])).all()
