@@ -132,6 +132,19 @@ def test_help_texts():
         assert res.returncode == 0 and "usage" in res.stdout
 
 
+def test_version_names_phjax_and_jax(capsys):
+    """``phjax --version``: the package's version (the one pyproject.toml declares) and JAX's."""
+    import tomllib
+    from importlib import metadata
+
+    from phjax.cli import main
+
+    assert main(["--version"]) == 0
+    out = capsys.readouterr().out.strip()
+    declared = tomllib.loads((Path(REPO) / "pyproject.toml").read_text())["project"]["version"]
+    assert out == f"phjax {declared} (jax {metadata.version('jax')}, jaxlib {metadata.version('jaxlib')})"
+
+
 @pytest.mark.parametrize("nb", sorted((Path(REPO) / "notebooks").glob("*.py")), ids=lambda p: p.name)
 def test_notebook_runs(nb, tmp_path, monkeypatch):
     monkeypatch.setenv("PHJAX_NOTEBOOK_FIGURES", str(tmp_path))

@@ -114,7 +114,7 @@ def cmd_demo_curve(args) -> int:
 
 # ------------------------------------------------------------------------------- parser
 _EPILOG = """\
-Compilation cache: the first run of a command compiles its JAX programs (tens of seconds); they
+Compilation cache: the first run of a command compiles its JAX programs (seconds); they
 are cached in $PHJAX_CACHE_DIR, else $XDG_CACHE_HOME/phjax/jax, else ~/.cache/phjax/jax, and
 later runs load them (a one-line note on stderr says when a first run compiles); the traced
 programs of track / reconstruct are kept there too (subfolder exported), so later runs also skip
@@ -127,6 +127,21 @@ stderr and exit status 2. Output files are named in each command's --help; an ex
 replaced and the line naming the written file says so."""
 
 
+def _version() -> str:
+    """``phjax X (jax Y, jaxlib Z)`` from the installed distributions (without importing JAX)."""
+    from importlib import metadata
+
+    from .. import __version__
+
+    def installed(name):
+        try:
+            return metadata.version(name)
+        except metadata.PackageNotFoundError:
+            return "not installed"
+
+    return f"phjax {__version__} (jax {installed('jax')}, jaxlib {installed('jaxlib')})"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(
         prog="phjax",
@@ -136,6 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--no-cache", action="store_true",
                         help="do not use JAX's persistent compilation cache (see below)")
+    parser.add_argument("--version", action="version", version=_version())
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("demo-curve", help="PH quintics from consecutive poses of a TUM trajectory",
