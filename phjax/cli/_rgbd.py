@@ -52,11 +52,17 @@ def cmd_track_rgbd(args) -> int:
             raise ValueError("--gt-reference needs a source with head-pose ground truth "
                              "(Biwi, synthetic)")
         reference = (gt.quaternions[0], gt.positions[0])
-    detector = None
-    if args.download_models:
-        from ..vision.face_detection import FaceDetector
+    from ..vision.face_detection import FaceDetector, ModelNotFoundError
 
-        detector = FaceDetector(args.backend, model_dir=args.model_dir, download=True)
+    try:
+        detector = FaceDetector(args.backend, model_dir=args.model_dir,
+                                download=args.download_models, detect_width=cfg.detect_width,
+                                score_threshold=cfg.min_face_score)
+    except ModelNotFoundError as e:  # the command line's own ways first
+        raise ModelNotFoundError(
+            f"{str(e).splitlines()[0].split('. Get it with')[0]}: pass --model-dir FOLDER (a "
+            "folder holding the model files, e.g. ../shared/data/yunet_face_detection) or "
+            "--download-models") from None
     est = HeadPoseEstimator(seq.intrinsics, cfg, detector=detector, model_dir=args.model_dir,
                             reference_pose=reference)
     frames = (seq[i] for i in range(n))

@@ -111,6 +111,8 @@ BAD_ARGUMENTS = [
     (["evaluate", "FILE", "--plot", "NOFOLDER/p.png"], "No such folder for the plot file"),
     (["smooth", "FILE", "-o", "OUT.txt", "--config", "NOFOLDER/c.json"], "c.json"),
     (["track-rgbd", "NOFOLDER", "-o", "OUT.tum"], "RGB-D source not found"),
+    (["track-rgbd", "synthetic:2", "-o", "OUT.tum", "--model-dir", "NOFOLDER"],
+     "not found in NOFOLDER: pass --model-dir FOLDER (a folder holding the model files"),
     (["smooth", "FILE"], "the following arguments are required: -o/--output"),
     (["smooth", "FILE", "-o", "OUT.txt", "--measurement-noise", "3,x"],
      "argument --measurement-noise: expected 'config', 'auto' or 'MM,DEG'"),
@@ -134,7 +136,8 @@ def test_bad_arguments_give_one_line_and_status_2(tmp_path, capsys, argv, messag
     argv = [a.replace("FILE", str(good)).replace("OUT", str(out))
             .replace("NOFOLDER", str(tmp_path / "no_such_folder")) for a in argv]
     rc, stdout, err = _run(capsys, argv)
-    _assert_one_line_error(rc, stdout, err, message)
+    _assert_one_line_error(rc, stdout, err, message.replace("NOFOLDER",
+                                                            str(tmp_path / "no_such_folder")))
     assert not any(tmp_path.glob("result*"))
 
 
