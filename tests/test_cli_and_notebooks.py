@@ -118,6 +118,32 @@ def test_smooth_roundtrip(tmp_path, offline, capsys):
     assert np.abs(out.positions - ref).max() < 0.05
 
 
+def test_smooth_lookahead_is_the_trackers_and_position_only_data_is_written(tmp_path, capsys):
+    """``--lookahead MS`` writes the causal stream of ``TrackerConfig(lookahead=MS / 1000)``
+    (the pose predicted for the display time), and a position-only file keeps its positions
+    (its rows were dropped as not finite before)."""
+    import phjax as pj
+
+    t = np.arange(0, 3, 1 / 30)
+    p = np.stack([np.sin(2 * t), np.cos(t), 0.1 * t], -1)
+    q = np.stack([np.cos(t / 2), 0 * t, np.sin(t / 2), 0 * t], -1)
+    src, dst = tmp_path / "in.csv", tmp_path / "out.txt"
+    io.write_csv(src, io.Trajectory(t, p, q))
+    assert main(["smooth", str(src), "-o", str(dst), "--lookahead", "40"]) == 0
+    out = io.read_tum(dst)
+    ref_p, ref_q = pj.track(t, p, q, out.times, config=pj.TrackerConfig(lookahead=0.04))
+    np.testing.assert_allclose(out.positions, np.asarray(ref_p), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.abs(np.sum(out.quaternions * np.asarray(ref_q), -1)), 1,
+                               atol=1e-9)
+    none = tmp_path / "positions.txt"
+    none.write_text("".join(f"{a} {b[0]} {b[1]} {b[2]} nan nan nan nan\n" for a, b in zip(t, p)))
+    assert main(["smooth", str(none), "-o", str(dst)]) == 0
+    out = io.read_tum(dst)
+    assert out.num_samples > 300 and np.isfinite(out.positions).all()
+    assert np.isnan(out.quaternions).all()
+    capsys.readouterr()
+
+
 def test_bad_input_gives_clear_error(tmp_path, capsys):
     bad = tmp_path / "bad.txt"
     bad.write_text("1.0 2.0 3.0\n")

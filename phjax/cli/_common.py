@@ -30,7 +30,10 @@ __all__ = [
 ]
 
 #: input formats of :func:`phjax.io.read_trajectory` (``--format`` choices)
-INPUT_FORMATS = ("auto", "tum", "euroc", "csv", "corbillon", "hachaj")
+INPUT_FORMATS = ("auto", "tum", "euroc", "csv", "corbillon", "hachaj", "cwi", "avtrack360")
+#: the largest --lookahead of the causal stream, ms: beyond it the prediction is mostly
+#: guesswork (a head turns its speed around in ~0.2 s), and no display is that slow
+MAX_LOOKAHEAD_MS = 200.0
 #: output formats of :func:`phjax.io.write_trajectory` (``--out-format`` choices)
 OUTPUT_FORMATS = ("auto", "tum", "csv", "euroc")
 

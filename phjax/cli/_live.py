@@ -7,9 +7,7 @@ import signal
 import sys
 import threading
 
-#: the largest --lookahead, ms: beyond it the prediction is mostly guesswork (a head turns
-#: its speed around in ~0.2 s), and no display is that slow
-MAX_LOOKAHEAD_MS = 200.0
+from ._common import MAX_LOOKAHEAD_MS
 
 
 def cmd_live(args) -> int:

@@ -9,6 +9,7 @@ import numpy as np
 from ._common import (
     BYTES_PER_CAMERA_FRAME,
     BYTES_PER_RENDER_SAMPLE,
+    MAX_LOOKAHEAD_MS,
     OUTPUT_FORMATS,
     add_format_argument,
     add_output_argument,
@@ -167,6 +168,19 @@ def cmd_smooth(args) -> int:
     _writer_format(args.output, args.out_format)  # before any work: a usable output name
     check_output(args.output)
     config = config_from_args(args)
+    if args.lookahead is not None:
+        if not 0.0 <= args.lookahead <= MAX_LOOKAHEAD_MS:
+            raise ValueError(f"--lookahead must be between 0 and {MAX_LOOKAHEAD_MS:g} ms, got "
+                             f"{args.lookahead:g}")
+        if args.offline:
+            raise ValueError("--lookahead predicts the causal stream's display time; the offline "
+                             "reconstruction (--offline) has no lookahead")
+        import equinox as eqx
+
+        from ..tracking.tracker import TrackerConfig
+
+        config = eqx.tree_at(lambda c: c.lookahead, TrackerConfig() if config is None else config,
+                             args.lookahead / 1e3)
     traj = read_input(args.input, args.format)
     span = float(traj.times[-1] - traj.times[0])
     check_fits({f"--rate {args.rate:g} Hz over {span:.3g} s":
@@ -181,7 +195,7 @@ def cmd_smooth(args) -> int:
     t0 = time.perf_counter()
     p, q = fn(traj.times, traj.positions, traj.quaternions, render, config=config)
     p, q = np.asarray(p, np.float64), np.asarray(q, np.float64)
-    ok = np.isfinite(q).all(-1)
+    ok = np.isfinite(q).all(-1) | np.isfinite(p).all(-1)  # one-part data: that part
     out = Trajectory(render[ok], p[ok], q[ok])
     note = replaced_note(args.output)
     write_trajectory(args.output, out, format=args.out_format)
@@ -263,6 +277,10 @@ def add_commands(sub) -> None:
     add_output_argument(p, "output file (.txt/.tum = TUM, .csv = plain CSV; see --out-format)")
     add_rate_argument(p, "output rate")
     p.add_argument("--offline", action="store_true", help="offline reconstruction (uses the future)")
+    p.add_argument("--lookahead", type=nonnegative_float, default=None, metavar="MS",
+                   help="display-time prediction of the causal stream, ms: the pose written for "
+                   f"time t is the one predicted for t + MS (at most {MAX_LOOKAHEAD_MS:g}; "
+                   "default: the --config's, else 0)")
     add_format_argument(p)
     p.add_argument("--out-format", default="auto", choices=OUTPUT_FORMATS,
                    help="output format (default auto: by the extension of OUTPUT)")

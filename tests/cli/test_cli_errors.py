@@ -83,6 +83,10 @@ def test_bad_input_file_gives_one_line_and_status_2(tmp_path, capsys, command, n
 BAD_ARGUMENTS = [
     # (argv with FILE = a valid two-pose TUM file, expected message part)
     (["smooth", "FILE", "-o", "OUT.txt", "--rate", "0"], "argument --rate: must be a positive"),
+    (["smooth", "FILE", "-o", "OUT.txt", "--lookahead", "300"],
+     "--lookahead must be between 0 and 200 ms, got 300"),
+    (["smooth", "FILE", "-o", "OUT.txt", "--lookahead", "20", "--offline"],
+     "the offline reconstruction (--offline) has no lookahead"),
     (["smooth", "FILE", "-o", "OUT.txt", "--rate", "-5"], "argument --rate: must be a positive"),
     (["smooth", "FILE", "-o", "OUT.txt", "--rate", "nan"], "argument --rate: must be a positive"),
     (["smooth", "FILE", "-o", "OUT.txt", "--rate", "inf"], "argument --rate: must be a positive"),
