@@ -144,10 +144,10 @@ class TrackerStream:
     def _complete(self, position: np.ndarray, quaternion: np.ndarray):
         """A host measurement with the never-measured part of a one-part source filled in (the
         origin / the identity; class docs), else unchanged."""
-        if self._seen[0] and self._seen[1]:  # a 6-DoF source: nothing to check any more
-            return position, quaternion
+        if (self._seen[0] and self._seen[1]) or position.shape != (3,) or quaternion.shape != (4,):
+            return position, quaternion  # a 6-DoF source, or shapes the update rejects itself
         p_ok = bool(np.isfinite(position).all())
-        q_ok = bool(np.isfinite(quaternion).all() and np.dot(quaternion, quaternion) > 0)
+        q_ok = bool(np.isfinite(quaternion).all() and np.sum(quaternion * quaternion) > 0)
         self._seen[0] |= p_ok
         self._seen[1] |= q_ok
         other_seen = self._seen[0] if q_ok else self._seen[1]
