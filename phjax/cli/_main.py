@@ -127,19 +127,27 @@ stderr and exit status 2. Output files are named in each command's --help; an ex
 replaced and the line naming the written file says so."""
 
 
-def _version() -> str:
-    """``phjax X (jax Y, jaxlib Z)`` from the installed distributions (without importing JAX)."""
-    from importlib import metadata
+class _Version(argparse.Action):
+    """``--version``: ``phjax X (jax Y, jaxlib Z)`` from the installed distributions, looked up
+    only when asked (the lookups take ~30 ms, which every other command would pay at start-up)
+    and without importing JAX."""
 
-    from .. import __version__
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
 
-    def installed(name):
-        try:
-            return metadata.version(name)
-        except metadata.PackageNotFoundError:
-            return "not installed"
+    def __call__(self, parser, namespace, values, option_string=None):
+        from importlib import metadata
 
-    return f"phjax {__version__} (jax {installed('jax')}, jaxlib {installed('jaxlib')})"
+        from .. import __version__
+
+        def installed(name):
+            try:
+                return metadata.version(name)
+            except metadata.PackageNotFoundError:
+                return "not installed"
+
+        print(f"phjax {__version__} (jax {installed('jax')}, jaxlib {installed('jaxlib')})")
+        parser.exit()
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -151,7 +159,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--no-cache", action="store_true",
                         help="do not use JAX's persistent compilation cache (see below)")
-    parser.add_argument("--version", action="version", version=_version())
+    parser.add_argument("--version", action=_Version,
+                        help="show phjax's, JAX's and jaxlib's versions and exit")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("demo-curve", help="PH quintics from consecutive poses of a TUM trajectory",
