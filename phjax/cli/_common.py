@@ -14,6 +14,7 @@ import os
 from pathlib import Path
 
 __all__ = [
+    "check_lookahead",
     "Parser",
     "add_format_argument",
     "add_output_argument",
@@ -36,6 +37,16 @@ INPUT_FORMATS = ("auto", "tum", "euroc", "csv", "corbillon", "hachaj", "cwi", "a
 MAX_LOOKAHEAD_MS = 200.0
 #: output formats of :func:`phjax.io.write_trajectory` (``--out-format`` choices)
 OUTPUT_FORMATS = ("auto", "tum", "csv", "euroc")
+
+
+def check_lookahead(ms: float) -> float:
+    """A ``--lookahead`` value in ms, checked against 0 .. :data:`MAX_LOOKAHEAD_MS` (a
+    ``ValueError`` naming the bound otherwise); returns it in seconds."""
+    if not (math.isfinite(ms) and 0.0 <= ms <= MAX_LOOKAHEAD_MS):
+        raise ValueError(f"--lookahead must be between 0 and {MAX_LOOKAHEAD_MS:g} ms, got {ms:g} "
+                         "(the display's motion-to-photon latency minus what the receiving "
+                         "program predicts itself)")
+    return ms / 1e3
 
 
 class Parser(argparse.ArgumentParser):

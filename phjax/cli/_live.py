@@ -7,16 +7,12 @@ import signal
 import sys
 import threading
 
-from ._common import MAX_LOOKAHEAD_MS
+from ._common import check_lookahead
 
 
 def cmd_live(args) -> int:
     ms = args.lookahead
-    if not (math.isfinite(ms) and 0.0 <= ms <= MAX_LOOKAHEAD_MS):
-        print(f"phjax live: error: --lookahead must be between 0 and {MAX_LOOKAHEAD_MS:g} ms "
-              f"(the display's motion-to-photon latency minus what the receiving program "
-              f"predicts itself), got {ms:g}", file=sys.stderr)
-        return 2
+    check_lookahead(ms)
     import equinox as eqx
     import jax
 

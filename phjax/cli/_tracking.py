@@ -14,6 +14,7 @@ from ._common import (
     add_format_argument,
     add_output_argument,
     add_rate_argument,
+    check_lookahead,
     add_sensor_arguments,
     check_fits,
     check_output,
@@ -169,9 +170,7 @@ def cmd_smooth(args) -> int:
     check_output(args.output)
     config = config_from_args(args)
     if args.lookahead is not None:
-        if not 0.0 <= args.lookahead <= MAX_LOOKAHEAD_MS:
-            raise ValueError(f"--lookahead must be between 0 and {MAX_LOOKAHEAD_MS:g} ms, got "
-                             f"{args.lookahead:g}")
+        lookahead = check_lookahead(args.lookahead)
         if args.offline:
             raise ValueError("--lookahead predicts the causal stream's display time; the offline "
                              "reconstruction (--offline) has no lookahead")
@@ -180,7 +179,7 @@ def cmd_smooth(args) -> int:
         from ..tracking.tracker import TrackerConfig
 
         config = eqx.tree_at(lambda c: c.lookahead, TrackerConfig() if config is None else config,
-                             args.lookahead / 1e3)
+                             lookahead)
     traj = read_input(args.input, args.format)
     span = float(traj.times[-1] - traj.times[0])
     check_fits({f"--rate {args.rate:g} Hz over {span:.3g} s":
