@@ -95,6 +95,7 @@ __all__ = [
     "biwi_pose_to_quaternion",
     "read_trajectory",
     "split_trajectory_name",
+    "read_trajectory_spec",
     "detect_format",
     "write_tum",
     "write_euroc",
@@ -858,6 +859,22 @@ def read_trajectory(path: PathLike, format: str = "auto", name: str | None = Non
         )
     return _READERS[fmt](path)
 
+
+
+def read_trajectory_spec(spec: PathLike, format: str = "auto",
+                         syntax: str = "FILE#NAME") -> Trajectory:
+    """:func:`read_trajectory` of a command line's ``FILE`` or ``FILE#NAME``
+    (:func:`split_trajectory_name`), its errors spelling the choice of a trajectory as
+    ``syntax`` (``FILE#NAME``, ``poses:FILE#NAME``) instead of the keyword ``name=``."""
+    path, name = split_trajectory_name(spec)
+    try:
+        return read_trajectory(path, format, name)
+    except TrajectoryFormatError as e:
+        text = str(e).replace("pass name= one of:", f"name one as {syntax}, NAME one of:")
+        text = text.replace("name= selects", f"{syntax} selects")
+        if text == str(e):
+            raise
+        raise TrajectoryFormatError(text, path=e.path, line=e.line) from None
 
 # ----------------------------------------------------------------------------------------------
 # Writers

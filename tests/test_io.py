@@ -479,6 +479,10 @@ def test_read_trajectory_names_one_of_several():
     np.testing.assert_array_equal(six.quaternions, every["6.mp4"].quaternions)
     np.testing.assert_array_equal(four.times, every["4.mp4"].times)
     assert io.split_trajectory_name(f"{cwi}#P03_V1") == (str(cwi), "P03_V1")
+    np.testing.assert_array_equal(io.read_trajectory_spec(f"{cwi}#P03_V1").positions,
+                                  one.positions)
+    with pytest.raises(io.TrajectoryFormatError, match="name one as FILE#NAME, NAME one of: P01"):
+        io.read_trajectory_spec(cwi)
     assert io.split_trajectory_name(tum) == (str(tum), None)
 
 

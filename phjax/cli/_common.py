@@ -126,25 +126,21 @@ def read_input(path, format: str = "auto", *, min_poses: int = 2):
     """
     import numpy as np
 
-    from ..io import TrajectoryFormatError, read_trajectory, split_trajectory_name
+    from ..io import TrajectoryFormatError, read_trajectory_spec, split_trajectory_name
 
-    spec, name = split_trajectory_name(path)
+    spec, _ = split_trajectory_name(path)
     p = Path(spec)
     if not p.exists():
         raise FileNotFoundError(2, "No such file or directory", spec)
     if p.is_dir():
         raise IsADirectoryError(21, "Is a directory (expected a trajectory file)", spec)
     try:
-        traj = read_trajectory(p, format=format, name=name)
-    except TrajectoryFormatError as e:  # the command line's spelling, not the keywords
-        text = str(e)
-        for kw, cli in (("pass format= one of", "pass --format, one of"),
-                        ("pass name= one of:", "name one as FILE#NAME, NAME one of:"),
-                        ("name= selects", "FILE#NAME selects")):
-            text = text.replace(kw, cli)
-        if text == str(e):
+        traj = read_trajectory_spec(path, format)
+    except TrajectoryFormatError as e:  # name the command line's option, not the keyword
+        if "pass format= one of" not in str(e):
             raise
-        raise TrajectoryFormatError(text, path=path) from None
+        raise TrajectoryFormatError(str(e).replace("pass format= one of", "pass --format, one of"),
+                                    path=path) from None
     valid = np.isfinite(traj.quaternions).all(-1) | np.isfinite(traj.positions).all(-1)
     n = int(np.count_nonzero(valid))
     if n < min_poses:

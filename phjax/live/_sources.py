@@ -157,20 +157,16 @@ class PoseReplaySource(Source):
 
     @classmethod
     def from_file(cls, path) -> PoseReplaySource:
-        from ..io import read_trajectory, split_trajectory_name
+        from ..io import read_trajectory_spec, split_trajectory_name
 
-        spec, name = split_trajectory_name(path)  # FILE#NAME: one of several (CWI, AVTrack360)
-        path = Path(spec)
-        if not path.is_file():
-            raise SourceError(f"pose file not found: {path}")
+        spec, _ = split_trajectory_name(path)  # FILE#NAME: one of several (CWI, AVTrack360)
+        if not Path(spec).is_file():
+            raise SourceError(f"pose file not found: {spec}")
         try:
-            traj = read_trajectory(path, name=name)
+            traj = read_trajectory_spec(path, syntax="poses:FILE#NAME")
         except ValueError as e:  # a bad file, or FILE#NAME missing / wrong: one line
-            raise SourceError(str(e).replace("pass name= one of:", "name one as poses:FILE#NAME, "
-                                             "NAME one of:").replace("name= selects", "#NAME selects")
-                              ) from None
-        return cls(traj.times, traj.positions, traj.quaternions,
-                   name=f"poses {path}" + (f"#{name}" if name else ""))
+            raise SourceError(str(e)) from None
+        return cls(traj.times, traj.positions, traj.quaternions, name=f"poses {path}")
 
     def run(self, clock, t0, stop, emit) -> None:
         t_first = self.times[0]
