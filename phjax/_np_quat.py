@@ -17,6 +17,14 @@ def np_qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
                      a * v3 + b * u3 + (u1 * v2 - u2 * v1)], axis=-1)
 
 
+def np_valid_quaternions(q: np.ndarray) -> np.ndarray:
+    """``(...)`` whether each quaternion of ``q (..., 4)`` is a measurement the filter uses:
+    finite and of non-zero norm (as ``phjax.tracking.kalman``'s own check)."""
+    q = np.asarray(q)
+    finite = np.isfinite(q).all(-1)
+    return finite & (np.sum(np.where(finite[..., None], q, 0.0) ** 2, -1) > 0)
+
+
 def np_qconj(q: np.ndarray) -> np.ndarray:
     """Conjugate."""
     return q * np.array([1.0, -1.0, -1.0, -1.0])

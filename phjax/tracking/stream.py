@@ -31,6 +31,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._jit import Tiered, jit
+from .._np_quat import np_valid_quaternions
 from .tracker import (
     TrackerConfig,
     TrackerState,
@@ -147,7 +148,7 @@ class TrackerStream:
         if (self._seen[0] and self._seen[1]) or position.shape != (3,) or quaternion.shape != (4,):
             return position, quaternion  # a 6-DoF source, or shapes the update rejects itself
         p_ok = bool(np.isfinite(position).all())
-        q_ok = bool(np.isfinite(quaternion).all() and np.sum(quaternion * quaternion) > 0)
+        q_ok = bool(np_valid_quaternions(quaternion))
         self._seen[0] |= p_ok
         self._seen[1] |= q_ok
         other_seen = self._seen[0] if q_ok else self._seen[1]

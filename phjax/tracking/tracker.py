@@ -50,6 +50,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._jit import jit
+from .._np_quat import np_valid_quaternions
 from .._sizes import unpad_rows
 from . import _exported
 from ._batch import run_batch
@@ -531,8 +532,7 @@ def _prepare_recording(times, positions, quaternions, render_times):
     # the filter initialises from a whole pose: data with one part only tracks that part against
     # a fixed other part (a point / the identity), and the missing part is reported as NaN
     p_ok = np.isfinite(positions).all(-1, keepdims=True)
-    q_ok = np.isfinite(quaternions).all(-1, keepdims=True) & (
-        np.sum(np.nan_to_num(quaternions) ** 2, -1, keepdims=True) > 0)
+    q_ok = np_valid_quaternions(quaternions)[:, None]
     orientation_only = not np.any(p_ok)
     position_only = not orientation_only and not np.any(q_ok)
     if orientation_only:
