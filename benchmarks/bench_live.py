@@ -57,6 +57,7 @@ import numpy as np
 from phjax._np_quat import np_from_rotvec
 from phjax.io import Trajectory, write_tum
 from phjax.live import LiveTracker, open_source, opentrack_values
+from _models import seeded_cache
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("PHJAX_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -241,11 +242,15 @@ def main() -> None:
     ap.add_argument("--modes", nargs="+", choices=("worker", "thread"), default=["worker"],
                     help="where a vision source's front-end runs (see above)")
     ap.add_argument("--realtime", nargs="+", choices=("no", "yes"), default=["no"])
-    ap.add_argument("--model-dir", default=None, help="model cache (YuNet)")
+    ap.add_argument("--model-dir", default=None,
+                    help="model cache (YuNet; seeded from the shared data when it lacks it)")
     ap.add_argument("--capture-nice", type=int, default=5,
                     help="niceness increment of the front-end (LiveTracker capture_nice)")
     args = ap.parse_args()
     sources = [s for s in args.sources if s != "udp" or _has_udp()]
+    model_dir = args.model_dir
+    if {"rgbd", "synthetic"} & set(sources):
+        model_dir = seeded_cache(model_dir)
     tmp = Path(tempfile.mkdtemp(prefix="phjax-bench-live-"))
     rows = []
     try:
@@ -260,7 +265,7 @@ def main() -> None:
                 for mode in modes:
                     row = run_row(name, spec, rate=args.rate, seconds=args.seconds,
                                   worker=mode == "worker", realtime=realtime == "yes",
-                                  model_dir=args.model_dir,
+                                  model_dir=model_dir,
                                   capture_nice=args.capture_nice)
                     print(format_row(row), file=sys.stderr, flush=True)
                     rows.append(row)

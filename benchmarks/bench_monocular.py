@@ -54,6 +54,7 @@ sys.path.insert(0, str(ROOT))
 
 from phjax._np_quat import np_qconj, np_qmul, np_rotvec
 from phjax.datasets import shared_data_dir
+from _models import seeded_cache
 from phjax.vision import face_detection as F
 from phjax.vision.monocular import (
     MonocularHeadPose,
@@ -86,26 +87,6 @@ def euler_deg(m):
 
 def geodesic_deg(a, b):
     return float(np.degrees(_rotation().from_matrix(a.T @ b).magnitude()))
-
-
-def _seed_models(model_dir):
-    cache = F.model_dir(model_dir)
-    missing = []
-    for m in F.KNOWN_MODELS:
-        if m is F.YUNET_KORNIA:
-            continue
-        try:
-            F.model_path(m, cache)
-        except (FileNotFoundError, ValueError):
-            missing.append(m.filename)
-    if missing:
-        data = shared_data_dir()
-        if data is None:
-            raise SystemExit(f"models {missing} not in {cache} and no shared data folder")
-        for sub in ("yunet_face_detection", "head_pose_models"):
-            if (data / sub).is_dir():
-                F.seed_model_cache(data / sub, cache)
-    return cache
 
 
 def _crop_rotation(r):
@@ -429,7 +410,8 @@ def main(argv=None):
     data = shared_data_dir()
     if data is None or not (data / "aflw2000_3d_sample").is_dir():
         raise SystemExit("shared/data/aflw2000_3d_sample not found (set $PHJAX_SHARED_DATA)")
-    cache = _seed_models(args.model_dir)
+    cache = seeded_cache(args.model_dir,
+                         [m for m in F.KNOWN_MODELS if m is not F.YUNET_KORNIA])
     photos = _aflw(data)
     print(f"# phjax monocular head-pose benchmark (onnxruntime {onnxruntime.__version__}, "
           f"opencv {cv2.__version__}, {os.cpu_count()} CPUs, load average "

@@ -37,6 +37,7 @@ from phjax.vision import head_pose as H  # noqa: E402
 from phjax.vision import rgbd_io as R  # noqa: E402
 from phjax._np_quat import np_qconj, np_qmul, np_rotvec  # noqa: E402
 from phjax.datasets import shared_data_dir  # noqa: E402
+from _models import seeded_cache  # noqa: E402
 
 
 def _stats(results, warmup):
@@ -57,21 +58,6 @@ def _run(frames, cfg, detector, reference=None):
     return res, time.perf_counter() - t0, est
 
 
-def _seed_models(model_dir):
-    cache = F.model_dir(model_dir)
-    try:
-        F.model_path(F.YUNET_ONNX, cache)
-        F.model_path(F.YUNET_KORNIA, cache)
-    except (FileNotFoundError, ValueError):
-        data = shared_data_dir()
-        src = data / "yunet_face_detection" if data else None
-        if src is None or not src.is_dir():
-            raise SystemExit(f"YuNet models not in {cache}; run phjax.vision.face_detection."
-                             "download_model(...) or point --model-dir at a seeded cache") from None
-        F.seed_model_cache(src, cache)
-    return cache
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -86,7 +72,8 @@ def main(argv=None):
 
     tmp = tempfile.mkdtemp(prefix="phjax_bench_")
     os.environ.setdefault("TORCH_HOME", os.path.join(tmp, "torch"))
-    cache = _seed_models(args.model_dir or os.path.join(tmp, "models"))
+    cache = seeded_cache(args.model_dir or os.path.join(tmp, "models"),
+                         (F.YUNET_ONNX, F.YUNET_KORNIA))
     print(f"# phjax RGB-D front-end benchmark (jax {jax.__version__}, opencv {cv2.__version__}, "
           f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f})\n")
 
