@@ -231,6 +231,10 @@ def main(argv: list[str] | None = None) -> int:
         except (ValueError, OSError) as err:
             print(f"phjax {args.command}: error: {format_user_error(err)}", file=sys.stderr)
             return 2
+        except MemoryError as err:  # an input or option larger than this machine's memory
+            print(f"phjax {args.command}: error: out of memory ({format_user_error(err)}); "
+                  "lower --rate or shorten the input", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":

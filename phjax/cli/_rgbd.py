@@ -9,7 +9,9 @@ import numpy as np
 
 from ._common import (
     add_output_argument,
+    BYTES_PER_RENDER_SAMPLE,
     add_rate_argument,
+    check_fits,
     check_output,
     positive_int,
     replaced_note,
@@ -43,6 +45,9 @@ def cmd_track_rgbd(args) -> int:
     n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
     if n == 0:
         raise ValueError(f"{args.source}: no frames")
+    span = float(np.ptp(seq.timestamps[:n])) if n > 1 else 0.0
+    check_fits({f"--rate {args.rate:g} Hz over {span:.3g} s":
+                (span * args.rate, BYTES_PER_RENDER_SAMPLE["smooth"])})
     cfg = HeadPoseConfig(backend=args.backend, detect_interval=args.detect_interval,
                          feature_method=args.features, icp=args.icp)
     reference = None

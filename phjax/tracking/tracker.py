@@ -51,6 +51,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._jit import jit
 from .._np_quat import np_valid_quaternions
+from ..io import TrajectoryWarning
 from .._sizes import unpad_rows
 from . import _exported
 from ._batch import run_batch
@@ -522,12 +523,13 @@ def _prepare_recording(times, positions, quaternions, render_times):
         raise ValueError("render times must be finite")
     order = np.argsort(times, kind="stable")
     if np.any(order != np.arange(n)):
-        warnings.warn("measurement times are not sorted; sorting them", stacklevel=3)
+        warnings.warn("measurement times are not sorted; sorting them", TrajectoryWarning,
+                      stacklevel=3)
     times, positions, quaternions = times[order], positions[order], quaternions[order]
     dup = np.concatenate([[False], np.diff(times) == 0])
     if np.any(dup):
         warnings.warn(f"dropping {int(dup.sum())} measurement(s) with duplicate timestamps "
-                      "(keeping the first)", stacklevel=3)
+                      "(keeping the first)", TrajectoryWarning, stacklevel=3)
         times, positions, quaternions = times[~dup], positions[~dup], quaternions[~dup]
     # the filter initialises from a whole pose: data with one part only tracks that part against
     # a fixed other part (a point / the identity), and the missing part is reported as NaN

@@ -578,7 +578,7 @@ class HeadPoseEstimator:
                  model_dir: Any = None, reference_pose: tuple[Any, Any] | None = None):
         self.config = HeadPoseConfig() if config is None else config
         self._jcfg = _JaxConfig.of(self.config)
-        self.intrinsics = intrinsics
+        self.intrinsics = None if intrinsics is None else intrinsics.checked()
         if detector is None:
             from .face_detection import FaceDetector
 

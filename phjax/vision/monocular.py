@@ -178,6 +178,8 @@ def intrinsics_from_fov(width: int, height: int, fov_deg: float = 60.0) -> Camer
     """
     if not 1.0 < fov_deg < 179.0:
         raise ValueError(f"field of view must be in (1, 179) degrees, got {fov_deg}")
+    if not (int(width) > 0 and int(height) > 0):
+        raise ValueError(f"image size must be positive, got {width}x{height}")
     f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
     return CameraIntrinsics(fx=f, fy=f, cx=(width - 1) / 2, cy=(height - 1) / 2,
                             width=int(width), height=int(height))
@@ -315,7 +317,7 @@ class MonocularHeadPose:
         from .features import _require
 
         self._cv2 = _require("cv2")
-        self.intrinsics = intrinsics
+        self.intrinsics = intrinsics.checked()
         self.method = method
         self.ipd = float(ipd)
         self.model = face_model(self.ipd)

@@ -102,6 +102,23 @@ class CameraIntrinsics(eqx.Module):
     width: int = eqx.field(static=True)
     height: int = eqx.field(static=True)
 
+    def checked(self) -> CameraIntrinsics:
+        """These intrinsics, after a host-side check (outside ``jit``): finite ``cx, cy``,
+        finite positive ``fx, fy``, positive ``width, height``.
+
+        Raises:
+            ValueError: with the offending values.
+        """
+        f = np.array([float(self.fx), float(self.fy)])
+        c = np.array([float(self.cx), float(self.cy)])
+        if not (np.isfinite(f).all() and (f > 0).all() and np.isfinite(c).all()
+                and self.width > 0 and self.height > 0):
+            raise ValueError(
+                "camera intrinsics need finite fx, fy > 0, finite cx, cy and a positive size; "
+                f"got fx={f[0]:g} fy={f[1]:g} cx={c[0]:g} cy={c[1]:g} "
+                f"size={self.width}x{self.height}")
+        return self
+
     @property
     def matrix(self) -> Float[np.ndarray, "3 3"]:
         """The 3x3 calibration matrix ``K`` (NumPy float64)."""
@@ -156,6 +173,15 @@ class RGBDFormatError(ValueError):
     def __init__(self, path: PathLike | None, what: str):
         super().__init__(f"{os.fspath(path)}: {what}" if path is not None else what)
         self.path = path
+
+
+def _read_text(path: Path) -> str:
+    """A text file's contents (UTF-8); any other bytes are a :class:`RGBDFormatError`."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise RGBDFormatError(path, f"not a UTF-8 text file (byte {e.start}: "
+                              f"{e.object[e.start:e.start + 1]!r})") from None
 
 
 class RGBDSequence(Sequence):
@@ -422,7 +448,7 @@ def read_biwi_calibration(path: PathLike) -> BiwiCalibration:
         RGBDFormatError: not exactly 27 numbers, non-finite values, or a bad K / R.
     """
     path = Path(path)
-    toks = path.read_text(encoding="utf-8").split()
+    toks = _read_text(path).split()
     try:
         vals = np.asarray([float(t) for t in toks], dtype=np.float64)
     except ValueError as e:
@@ -614,7 +640,7 @@ def _read_list(path: Path) -> tuple[np.ndarray, list[str]]:
     if not path.is_file():
         raise RGBDFormatError(path.parent, f"missing {path.name}")
     times, names = [], []
-    for lineno, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+    for lineno, line in enumerate(_read_text(path).splitlines(), 1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
@@ -793,7 +819,7 @@ def read_pose_list(path: PathLike) -> Trajectory:
     """
     path = Path(path)
     rows = []
-    for lineno, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+    for lineno, line in enumerate(_read_text(path).splitlines(), 1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue

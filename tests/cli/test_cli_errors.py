@@ -177,6 +177,7 @@ def test_top_level_help_documents_the_error_path(capsys):
     (["evaluate", "FILE", "--plot", "", "--no-progress", "--rate", "1e9"], "--rate 1e+09 Hz"),
     (["demo", "--plot", "", "--no-progress", "--camera-rate", "1e9"], "--camera-rate 1e+09 Hz"),
     (["demo", "FILE", "--plot", "", "--no-progress", "--rate", "2e8"], "--rate 2e+08 Hz"),
+    (["track-rgbd", "synthetic:10", "-o", "OUT.txt", "--rate", "1e9"], "--rate 1e+09 Hz"),
 ])
 def test_work_that_cannot_fit_in_memory_says_so_before_it_starts(tmp_path, capsys, monkeypatch,
                                                                    argv, names):

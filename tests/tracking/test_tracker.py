@@ -585,3 +585,17 @@ def test_lengths_in_one_size_class_share_one_program_and_equal_unpadded(head):
         jax.monitoring.unregister_event_duration_listener(on_duration)
     # one compile at most: reconstruct's class (track's was compiled before listening)
     assert len(compiles) <= 1, compiles
+
+
+def test_unsorted_and_duplicate_times_warn_as_trajectory_warnings():
+    """``track`` sorts and de-duplicates with a :class:`phjax.io.TrajectoryWarning` (which the
+    command line prints as one ``phjax: warning:`` line), not a bare ``UserWarning``."""
+    from phjax.io import TrajectoryWarning
+
+    t = np.array([0.0, 1 / 30, 1 / 30, 3 / 30, 2 / 30, 4 / 30])
+    p = np.zeros((6, 3))
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (6, 1))
+    with pytest.warns(TrajectoryWarning) as rec:
+        pj.track(t, p, q, np.linspace(0, 0.13, 5))
+    assert {str(w.message).split(";")[0].split(" (")[0] for w in rec} == {
+        "measurement times are not sorted", "dropping 1 measurement(s) with duplicate timestamps"}

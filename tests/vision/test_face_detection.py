@@ -171,6 +171,18 @@ def test_no_face(detectors, backend):
     assert out == [[], []]
 
 
+@pytest.mark.parametrize("backend", F.BACKENDS)
+def test_frames_smaller_than_the_network_input(detectors, biwi_images, backend):
+    """Frames under kornia's 64 px pooling limit are padded, not an exception (opencv pads
+    internally); a face found there lies inside the frame."""
+    cv2 = pytest.importorskip("cv2")
+    for w, h in [(1, 1), (16, 16), (48, 48), (64, 48), (640, 40), (40, 640), (300, 2)]:
+        img = cv2.resize(biwi_images[0], (w, h), interpolation=cv2.INTER_AREA)
+        for f in detectors[backend].detect(img):
+            c = f.center
+            assert 0 <= c[0] < w and 0 <= c[1] < h, (w, h, f)
+
+
 def test_bad_input(detectors):
     with pytest.raises(ValueError, match="uint8"):
         detectors["opencv"].detect(np.zeros((10, 10), np.float32))

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import shutil
 
+import equinox as eqx
 import numpy as np
 import pytest
 from conftest import shared_path, yunet_models
@@ -269,6 +270,15 @@ def test_bad_input_gives_a_clear_status(est, detector):
         MonocularHeadPose(est.intrinsics, method="pnp", detector=detector)
     with pytest.raises(ValueError, match="landmark"):
         MonocularHeadPose(est.intrinsics, method="landmarks", detector="localizer")
+    # unusable intrinsics are refused when built, not a NaN pose reported as OK later
+    k = est.intrinsics
+    for bad in (eqx.tree_at(lambda c: c.fx, k, np.nan), eqx.tree_at(lambda c: c.fy, k, 0.0),
+                eqx.tree_at(lambda c: c.cx, k, np.inf), eqx.tree_at(lambda c: c.fx, k, -500.0)):
+        for method in ("net", "landmarks"):
+            with pytest.raises(ValueError, match="intrinsics need finite fx, fy > 0"):
+                MonocularHeadPose(bad, method=method, detector=detector)
+    with pytest.raises(ValueError, match="image size must be positive"):
+        intrinsics_from_fov(0, 0)
 
 
 def test_missing_model_names_the_cache(tmp_path, detector):

@@ -17,6 +17,17 @@ FRAMES = ("00054", "00427", "unknown")
 
 
 # ------------------------------------------------------------------------------ intrinsics
+def test_intrinsics_checked():
+    good = R.CameraIntrinsics(525.0, 525.0, 319.5, 239.5, width=640, height=480)
+    assert good.checked() is good
+    for kw in ({"fx": np.nan}, {"fy": 0.0}, {"fx": -1.0}, {"cx": np.inf}, {"width": 0},
+               {"height": -1}):
+        args = {"fx": 525.0, "fy": 525.0, "cx": 319.5, "cy": 239.5, "width": 640,
+                "height": 480, **kw}
+        with pytest.raises(ValueError, match="intrinsics need finite fx, fy > 0"):
+            R.CameraIntrinsics(**args).checked()
+
+
 def test_intrinsics_scaled_keeps_pixel_centres():
     k = R.CameraIntrinsics(500.0, 510.0, 319.5, 239.5, width=640, height=480)
     p = np.array([0.1, -0.05, 1.3])
@@ -256,6 +267,9 @@ def test_tum_malformed(tmp_path):
         R.read_tum_rgbd(folder)
     (folder / "rgb.txt").write_text("500.0 rgb/x.png\n")
     with pytest.raises(R.RGBDFormatError, match="no colour/depth pair"):
+        R.read_tum_rgbd(folder)
+    (folder / "rgb.txt").write_bytes(b"\xff\xfe\x00garbage")
+    with pytest.raises(R.RGBDFormatError, match=r"rgb.txt: not a UTF-8 text file \(byte 0"):
         R.read_tum_rgbd(folder)
 
 
