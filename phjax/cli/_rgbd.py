@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import time
 from collections import Counter
 
@@ -13,6 +14,7 @@ from ._common import (
     add_rate_argument,
     check_fits,
     check_output,
+    positive_float,
     positive_int,
     replaced_note,
 )
@@ -29,6 +31,36 @@ def _relative_rotation_errors(est_q: np.ndarray, gt_q: np.ndarray) -> np.ndarray
     return np.degrees(np.linalg.norm(np_rotvec(np_qmul(np_qconj(rel_g), rel_e)), axis=-1))
 
 
+def _intrinsics(text: str) -> tuple[float, ...]:
+    """argparse type: ``FX,FY,CX,CY`` (finite; focal lengths > 0)."""
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        vals = ()
+    if len(vals) != 4 or not all(np.isfinite(vals)) or min(vals[:2]) <= 0:
+        raise argparse.ArgumentTypeError(
+            f"expected FX,FY,CX,CY (pixels, focal lengths > 0), got {text!r}")
+    return vals
+
+
+def _reader_options(args) -> dict:
+    """``--depth-scale`` / ``--intrinsics`` as reader keywords, for the layouts that take them."""
+    from ..vision.rgbd_io import rgbd_layout
+
+    given = {k: v for k, v in (("depth_scale", args.depth_scale),
+                               ("intrinsics", args.intrinsics)) if v is not None}
+    if given:
+        layout = rgbd_layout(args.source)
+        if layout not in ("tum", "pairs"):
+            names = " and ".join("--" + k.replace("_", "-") for k in given)
+            raise ValueError(f"{names}: only for TUM RGB-D and color/ + depth/ folders; "
+                             f"{args.source} is {LAYOUT_NAMES[layout]} with its own calibration")
+    return given
+
+
+LAYOUT_NAMES = {"biwi": "a Biwi folder", "synthetic": "the synthetic head"}
+
+
 def cmd_track_rgbd(args) -> int:
     import jax
 
@@ -41,7 +73,7 @@ def cmd_track_rgbd(args) -> int:
     check_output(args.output)
     if args.raw:
         check_output(args.raw)
-    seq = open_rgbd(args.source)
+    seq = open_rgbd(args.source, **_reader_options(args))
     n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
     if n == 0:
         raise ValueError(f"{args.source}: no frames")
@@ -102,7 +134,12 @@ def cmd_track_rgbd(args) -> int:
           f"({1 / np.median(steady):.1f} frames/s) after the first frames (those include the "
           f"compilation: {per_frame[:2].sum():.1f} s); {wall:.1f} s in all with frame loading")
     if not ok.any():
-        raise ValueError("no frame produced a head pose; nothing to track")
+        hint = ""
+        if counts.most_common(1)[0][0] == "NO_DEPTH":
+            hint = (f" (most frames had too little depth within {cfg.min_depth:g}-"
+                    f"{cfg.max_depth:g} m: check the depth's units; --depth-scale sets them "
+                    "for TUM RGB-D and color/ + depth/ folders)")
+        raise ValueError(f"no frame produced a head pose; nothing to track{hint}")
     if args.raw:
         note = replaced_note(args.raw)
         write_trajectory(args.raw, Trajectory(times[ok], pos[ok], quat[ok]))
@@ -159,6 +196,14 @@ def add_commands(sub) -> None:
                    "extension; replaced when it exists)")
     p.add_argument("--gt-reference", action="store_true",
                    help="use the ground-truth pose of the first frame as the reference")
+    p.add_argument("--depth-scale", type=positive_float, default=None, metavar="UNITS",
+                   help="depth image units per metre, for TUM RGB-D and color/ + depth/ folders "
+                   "(default: the layout's own, TUM 5000, color/ + depth/ 1000; e.g. 1000 for "
+                   "millimetre PNGs in a TUM-layout folder)")
+    p.add_argument("--intrinsics", type=_intrinsics, default=None, metavar="FX,FY,CX,CY",
+                   help="colour camera intrinsics in pixels, for TUM RGB-D and color/ + depth/ "
+                   "folders (default: TUM Freiburg 1/2/3 from the folder name, else the ROS "
+                   "defaults 525,525,319.5,239.5; color/ + depth/: slambook's)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_noise_argument(p, has_config=False)
     p.set_defaults(func=cmd_track_rgbd)

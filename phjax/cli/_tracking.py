@@ -110,7 +110,6 @@ def _run_evaluation(times, positions, quaternions, args, title: str) -> int:
 
 def _demo_rgbd(args) -> int:
     """End to end on the package's synthetic RGB-D head: front-end, tracker, accuracy."""
-    import argparse
     import tempfile
     from pathlib import Path
 
@@ -131,10 +130,12 @@ def _demo_rgbd(args) -> int:
             face_detection.download_model(face_detection.YUNET_ONNX)
     out = Path(args.plot).with_suffix(".tum") if args.plot else Path(tempfile.gettempdir()) / "phjax_demo_rgbd.tum"
     check_output(out)
-    ns = argparse.Namespace(source=f"synthetic:{args.rgbd}:{args.seed}", output=str(out), rate=args.rate,
-                            backend="opencv", model_dir=None, download_models=False, features="orb",
-                            icp="projective", detect_interval=1, max_frames=None, raw=None,
-                            gt_reference=True, no_progress=args.no_progress)
+    from ._main import build_parser  # track-rgbd's own defaults for everything not set here
+
+    ns = build_parser().parse_args(
+        ["track-rgbd", f"synthetic:{args.rgbd}:{args.seed}", "-o", str(out),
+         "--rate", repr(args.rate), "--gt-reference"] + (["--no-progress"] if args.no_progress
+                                                          else []))
     print(f"# phjax demo --rgbd: {args.rgbd} synthetic RGB-D frames (640x480, 30 Hz) -> head pose -> "
           f"{args.rate:g} Hz stream")
     return cmd_track_rgbd(ns)

@@ -80,6 +80,7 @@ __all__ = [
     "SLAMBOOK_INTRINSICS",
     "synthetic_rgbd",
     "open_rgbd",
+    "rgbd_layout",
 ]
 
 PathLike = str | os.PathLike
@@ -709,14 +710,16 @@ def _guess_tum_intrinsics(folder: Path, shape: tuple[int, int]) -> CameraIntrins
     return CameraIntrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=shape[1], height=shape[0])
 
 
-def read_tum_rgbd(folder: PathLike, *, intrinsics: CameraIntrinsics | None = None,
+def read_tum_rgbd(folder: PathLike, *,
+                  intrinsics: CameraIntrinsics | Sequence[float] | None = None,
                   max_difference: float = 0.02, depth_scale: float = 5000.0) -> RGBDSequence:
     """A TUM RGB-D folder (``rgb.txt``, ``depth.txt``, images) as a lazy :class:`RGBDSequence`.
 
     Arguments:
         folder: the sequence folder.
-        intrinsics: colour intrinsics (default: Freiburg 1/2/3 values guessed from the folder
-            name, e.g. ``rgbd_dataset_freiburg1_xyz``; ROS defaults otherwise).
+        intrinsics: colour intrinsics, or ``(fx, fy, cx, cy)`` for the images' size (default:
+            Freiburg 1/2/3 values guessed from the folder name, e.g.
+            ``rgbd_dataset_freiburg1_xyz``; ROS defaults otherwise).
         max_difference: association window, s.
         depth_scale: depth units per metre (5000 for TUM).
 
@@ -734,6 +737,9 @@ def read_tum_rgbd(folder: PathLike, *, intrinsics: CameraIntrinsics | None = Non
     first = _color(folder / rgb_names[ia[0]])
     if intrinsics is None:
         intrinsics = _guess_tum_intrinsics(folder, first.shape[:2])
+    elif not isinstance(intrinsics, CameraIntrinsics):
+        intrinsics = CameraIntrinsics(*[float(v) for v in intrinsics], width=first.shape[1],
+                                      height=first.shape[0])
     times = t_rgb[ia]
 
     def load(a: int, b: int) -> RGBDFrame:
@@ -911,6 +917,30 @@ def synthetic_rgbd(num_frames: int = 90, seed: int = 0, **kwargs: Any) -> RGBDSe
 
 
 # --------------------------------------------------------------------------------- detection
+def rgbd_layout(source: PathLike) -> str:
+    """The layout :func:`open_rgbd` reads ``source`` as: ``"synthetic"``, ``"biwi"``,
+    ``"tum"`` or ``"pairs"`` (a ``color/`` + ``depth/`` folder).
+
+    Raises:
+        FileNotFoundError: the path does not exist.
+        RGBDFormatError: the layout is not recognised.
+    """
+    if isinstance(source, str) and (source == "synthetic" or source.startswith("synthetic:")):
+        return "synthetic"
+    path = Path(source)
+    if not path.exists():
+        raise FileNotFoundError(f"RGB-D source not found: {path}")
+    if path.is_dir():
+        if any(path.glob("frame_*_rgb.png")):
+            return "biwi"
+        if (path / "rgb.txt").is_file() and (path / "depth.txt").is_file():
+            return "tum"
+        if (path / "color").is_dir() and (path / "depth").is_dir():
+            return "pairs"
+    raise RGBDFormatError(path, "unrecognised RGB-D source (expected a Biwi, TUM RGB-D or "
+                          "color/ + depth/ folder)")
+
+
 def open_rgbd(source: PathLike, **kwargs: Any) -> RGBDSequence:
     """Open an RGB-D source, detecting its layout.
 
@@ -926,8 +956,9 @@ def open_rgbd(source: PathLike, **kwargs: Any) -> RGBDSequence:
         FileNotFoundError: the path does not exist.
         RGBDFormatError: the layout is not recognised.
     """
-    if isinstance(source, str) and (source == "synthetic" or source.startswith("synthetic:")):
-        parts = source.split(":")[1:]
+    layout = rgbd_layout(source)
+    if layout == "synthetic":
+        parts = str(source).split(":")[1:]
         try:
             vals = [int(v) for v in parts]
         except ValueError as e:
@@ -935,16 +966,6 @@ def open_rgbd(source: PathLike, **kwargs: Any) -> RGBDSequence:
         if len(vals) > 2:
             raise ValueError(f"bad synthetic source {source!r}; use synthetic[:N[:SEED]]")
         return synthetic_rgbd(*vals, **kwargs)
-    path = Path(source)
-    if not path.exists():
-        raise FileNotFoundError(f"RGB-D source not found: {path}")
-    if path.is_dir():
-        if any(path.glob("frame_*_rgb.png")):
-            return read_biwi(path, **kwargs)
-        if (path / "rgb.txt").is_file() and (path / "depth.txt").is_file():
-            return read_tum_rgbd(path, **kwargs)
-        if (path / "color").is_dir() and (path / "depth").is_dir():
-            return read_slambook(path, **kwargs)
-    raise RGBDFormatError(path, "unrecognised RGB-D source (expected a Biwi, TUM RGB-D or "
-                          "color/ + depth/ folder)")
+    reader = {"biwi": read_biwi, "tum": read_tum_rgbd, "pairs": read_slambook}[layout]
+    return reader(Path(source), **kwargs)
 

@@ -472,3 +472,43 @@ def test_cli_track_rgbd(tmp_path, monkeypatch, capsys):
     bad = parser.parse_args(["track-rgbd", str(tmp_path), "-o", str(out), "--no-progress"])
     with pytest.raises(R.RGBDFormatError):
         bad.func(bad)
+
+
+def test_cli_track_rgbd_depth_scale_and_intrinsics(tmp_path, capsys):
+    """A TUM-layout folder of millimetre depth with its own camera (the Biwi frames rewritten):
+    the default scale (5000 / m) finds no usable depth and says which option sets it;
+    ``--depth-scale 1000 --intrinsics ...`` gives the poses of the Biwi folder itself (within
+    the millimetre rounding of the rewritten depth); both options are refused for a Biwi
+    folder, which carries its own calibration."""
+    import argparse
+
+    from phjax.cli import _rgbd
+    from phjax.io import read_trajectory
+
+    cache = tmp_path / "models"
+    F.seed_model_cache(yunet_models(), cache)
+    parser = argparse.ArgumentParser(prog="phjax")
+    _rgbd.add_commands(parser.add_subparsers(dest="command", required=True))
+    biwi = R.read_biwi(shared_path(*BIWI))
+    folder = tmp_path / "my_camera"
+    R.write_tum_rgbd(folder, list(biwi), depth_scale=1000.0)
+    k = biwi.intrinsics
+    own = f"{float(k.fx)},{float(k.fy)},{float(k.cx)},{float(k.cy)}"
+
+    def run(source, *extra):
+        raw = tmp_path / "raw.tum"
+        args = parser.parse_args(["track-rgbd", str(source), "-o", str(tmp_path / "o.tum"),
+                                  "--raw", str(raw), "--model-dir", str(cache), "--no-progress",
+                                  *extra])
+        return args.func(args), raw
+
+    with pytest.raises(ValueError, match="--depth-scale sets them"):
+        run(folder, "--intrinsics", own)
+    assert run(folder, "--depth-scale", "1000", "--intrinsics", own)[0] == 0
+    assert "status: OK 3" in capsys.readouterr().out
+    mine = read_trajectory(tmp_path / "raw.tum")
+    assert run(shared_path(*BIWI))[0] == 0
+    ref = read_trajectory(tmp_path / "raw.tum")
+    np.testing.assert_allclose(mine.positions, ref.positions, atol=3e-3)
+    with pytest.raises(ValueError, match="only for TUM RGB-D and color/ \\+ depth/ folders"):
+        run(shared_path(*BIWI), "--depth-scale", "1000")
