@@ -31,7 +31,8 @@ for calls this short the hand-off to a worker thread costs more than the computa
 once with :func:`tracker_config_arrays`.
 Batch API: :func:`track` runs the causal stream over a recording in one ``lax.scan`` (the output
 at render time ``tau`` depends only on measurements with ``t <= tau``), and :func:`reconstruct`
-the offline version (RTS-smoothed states joined by PH quintic / C1 quaternion segments). Both
+the offline version (RTS-smoothed states joined by PH quintic / C1 quaternion segments; gaps
+longer than ``coast_time + stop_time`` bridged by coasting in from both sides). Both
 also take NaN-padded batches of recordings, sharded over devices or not
 (:mod:`phjax.tracking._batch`, padding rule in :mod:`phjax.batch`).
 
@@ -73,6 +74,7 @@ from ..quaternion import (
     quat_from_rotvec,
     quat_mul,
     quat_normalize,
+    quat_slerp,
     quat_to_rotvec,
 )
 
@@ -199,8 +201,7 @@ class RenderSegment(eqx.Module):
         s = jnp.clip((tau - self.start[i]) / rotation.duration, 0, 1)
         # past the end: coast, then come to rest smoothly
         delta = jnp.maximum(tau - self.end, 0)
-        decay = jnp.exp(-jnp.maximum(delta - self.coast_time, 0) / self.stop_time)
-        disp = jnp.minimum(delta, self.coast_time) + self.stop_time * (1 - decay)
+        disp, factor = _coast(delta, self.coast_time, self.stop_time)
         inside = tau <= self.end
         nan = jnp.where(self.started, 0.0, jnp.nan).astype(dtype)
         p = jnp.where(inside, curve.position(s), self.p_end + disp * self.v_end) + nan
@@ -208,10 +209,35 @@ class RenderSegment(eqx.Module):
         q = jnp.where(inside, rotation.rotation(s), q_coast) + nan
         if not velocities:
             return p, None, q, None
-        factor = jnp.where(delta > self.coast_time, decay, 1.0)
         v = jnp.where(inside, curve.hodograph(s) / rotation.duration, factor * self.v_end) + nan
         w = jnp.where(inside, rotation.angular_velocity(s), factor * self.w_end) + nan
         return p, v, q, w
+
+
+def _coast(delta, coast_time, stop_time):
+    """Coasting after the last state, ``delta >= 0`` seconds on: the distance travelled in
+    units of the end velocity (``delta`` for ``coast_time``, then ``stop_time (1 - decay)``)
+    and the velocity factor (1, then ``decay = exp(-(delta - coast_time) / stop_time)``)."""
+    decay = jnp.exp(-jnp.maximum(delta - coast_time, 0) / stop_time)
+    disp = jnp.minimum(delta, coast_time) + stop_time * (1 - decay)
+    return disp, jnp.where(delta > coast_time, decay, 1.0)
+
+
+def _bridge(p_a, v_a, q_a, w_a, p_b, v_b, q_b, w_b, delta, dt, coast_time, stop_time):
+    """The offline pose ``delta`` seconds into a gap of ``dt`` seconds between two states: each
+    side coasts into the gap as the causal stream does (:func:`_coast`; backwards from the
+    later state) and a smoothstep ``3 u^2 - 2 u^3`` of ``u = delta / dt`` blends the two
+    (slerp for orientation). Position and velocity equal the states' at both ends (C1), and
+    neither side moves further than ``coast_time + stop_time`` times its velocity."""
+    d_a = _coast(delta, coast_time, stop_time)[0][..., None]
+    d_b = _coast(dt - delta, coast_time, stop_time)[0][..., None]
+    u = jnp.clip(delta / dt, 0, 1)
+    blend = u * u * (3 - 2 * u)
+    from_a = p_a + d_a * v_a
+    from_b = p_b - d_b * v_b
+    q_from_a = quat_mul(quat_from_rotvec(d_a * w_a), q_a)
+    q_from_b = quat_mul(quat_from_rotvec(-d_b * w_b), q_b)
+    return from_a + blend[..., None] * (from_b - from_a), quat_slerp(q_from_a, q_from_b, blend)
 
 
 class TrackerState(eqx.Module):
@@ -675,6 +701,14 @@ def _reconstruct_core(config, times, positions, quaternions, render_times):
     rs = jax.tree.map(lambda x: x[idx], rots)
     pr = jax.vmap(lambda c, x: c.position(x))(cs, s)
     qr = jax.vmap(lambda c, x: c.rotation(x))(rs, s)
+    # a gap longer than the causal stream's coasting is bridged without a made-up excursion
+    # (the segment's end derivatives are velocity x gap: a 300 s gap would swing metres)
+    gap = dt[idx]
+    long_gap = gap > config.coast_time + config.stop_time
+    pb, qb = _bridge(p[idx], v[idx], q[idx], w[idx], p[idx + 1], v[idx + 1], q[idx + 1],
+                     w[idx + 1], s * gap, gap, config.coast_time, config.stop_time)
+    pr = jnp.where(long_gap[:, None], pb, pr)
+    qr = jnp.where(long_gap[:, None], qb, qr)
     nan = jnp.where(jnp.any(ok), 0.0, jnp.nan).astype(dtype)
     return pr + nan, qr + nan
 
@@ -690,7 +724,12 @@ def reconstruct(
 ) -> tuple[Float[Array, "*B M 3"], Float[Array, "*B M 4"]]:
     """Offline reconstruction: RTS-smoothed states joined by C1 PH quintic / quaternion segments.
 
-    Not causal (uses the whole recording). Same arguments, conventions, batches (NaN padding
+    Not causal (uses the whole recording). A gap between measurements longer than
+    ``config.coast_time + config.stop_time`` (0.15 s by default: lost frames, a paused
+    recording) is bridged without made-up motion: from each side the pose moves into the gap
+    as the causal stream coasts (``coast_time`` with that side's velocity, then coming to rest
+    over ``stop_time``), and a smoothstep blends the two sides (slerp for orientation); the
+    pose stays C1. Same arguments, conventions, batches (NaN padding
     rule) and sharding as :func:`track`; render times outside the measurement span hold the
     end poses (before the first valid measurement: its pose; after the last real frame of a
     padded recording: its pose).

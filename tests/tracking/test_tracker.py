@@ -452,6 +452,36 @@ def test_offline_reconstruction_is_smooth_and_accurate(head):
     assert jerk[0] < 1.5 * 0.0042 and jerk[1] < 1.5 * 0.0045, jerk
 
 
+@pytest.mark.parametrize("gap", [0.5, 300.0])
+def test_offline_reconstruction_bridges_a_long_gap_without_made_up_motion(head, gap):
+    """A gap longer than ``coast_time + stop_time`` (0.15 s) in the measurements: each side
+    coasts into it and the two are blended, so the rendered position stays within
+    ``(coast_time + stop_time) x`` the end speeds of the chord between the end poses (before,
+    a 300 s gap swung 27 m and 180 degrees: the segment's end derivatives were velocity x gap),
+    and position and orientation stay C1 at both ends of the gap (one-sided differences)."""
+    t, p, q, mt, mp, mq = head
+    k = mt.size // 2
+    mt = np.concatenate([mt[:k], mt[k:] + gap])
+    ta, tb = mt[k - 1], mt[k]
+    h = 1e-6
+    r = np.concatenate([[ta - h, ta, ta + h], np.linspace(ta, tb, 4001)[1:-1], [tb - h, tb, tb + h]])
+    P, Q = (np.asarray(x) for x in pj.reconstruct(mt, mp, mq, r, dtype=jnp.float64))
+    assert np.isfinite(P).all() and np.isfinite(Q).all()
+    va, vb = (P[2] - P[1]) / h, (P[-1] - P[-2]) / h
+    np.testing.assert_allclose((P[1] - P[0]) / h, va, rtol=1e-3, atol=1e-5)  # C1 at ta
+    np.testing.assert_allclose((P[-2] - P[-3]) / h, vb, rtol=1e-3, atol=1e-5)  # C1 at tb
+    a, b = P[1], P[-2]
+    u = np.clip((P - a) @ (b - a) / max((b - a) @ (b - a), 1e-30), 0, 1)
+    off_chord = np.linalg.norm(P - (a + u[:, None] * (b - a)), axis=-1)
+    assert off_chord.max() <= 0.15 * max(np.linalg.norm(va), np.linalg.norm(vb)) + 1e-6
+    wa = np.asarray(pj.quat_to_rotvec(pj.quat_mul(Q[2], pj.quat_conj(Q[1])))) / h
+    wa_before = np.asarray(pj.quat_to_rotvec(pj.quat_mul(Q[1], pj.quat_conj(Q[0])))) / h
+    np.testing.assert_allclose(wa_before, wa, rtol=1e-3, atol=1e-4)
+    turn = np.asarray(pj.quat_geodesic_distance(Q[1], Q[3:-3]))
+    span = float(pj.quat_geodesic_distance(Q[1], Q[-2]))
+    assert turn.max() <= span + 0.15 * 2 * max(np.linalg.norm(wa), 1.0) + 1e-6
+
+
 def test_causal_stream_against_kalman_extrapolation(head):
     """The causal stream against the usual predictive baseline (the same filter's
     constant-velocity extrapolation, which jumps at every frame) and the ground truth.
