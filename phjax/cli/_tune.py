@@ -44,8 +44,14 @@ def config_from_args(args):
     if not path:
         return None
     from ..tracking.tuning import load_config
+    from ._common import MAX_LOOKAHEAD_MS
 
-    return load_config(path)
+    config = load_config(path)
+    ms = 1e3 * float(config.lookahead)
+    if not 0.0 <= ms <= MAX_LOOKAHEAD_MS:  # the bound --lookahead has, for the same field
+        raise ValueError(f"{path}: tracker.lookahead must be between 0 and "
+                         f"{MAX_LOOKAHEAD_MS / 1e3:g} s, got {ms / 1e3:g}")
+    return config
 
 
 def _noise_value(text: str):

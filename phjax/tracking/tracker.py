@@ -134,6 +134,25 @@ class TrackerConfig(eqx.Module):
     stop_time: float = 0.05
     lookahead: float = 0.0
 
+    def __check_init__(self):
+        # concrete values only (a traced config, e.g. inside jax.grad, is the caller's to keep
+        # valid); a horizon or stop time of 0 divides by zero: NaN poses, not an error
+        for name, ok, rule in (("horizon", lambda x: x > 0, " > 0"),
+                               ("stop_time", lambda x: x > 0, " > 0"),
+                               ("coast_time", lambda x: x >= 0, " >= 0"),
+                               ("adapt", lambda x: x == x, ""),
+                               ("lookahead", lambda x: x == x, "")):
+            value = getattr(self, name)
+            if isinstance(value, jax.core.Tracer):
+                continue
+            try:
+                x = None if isinstance(value, (str, bytes)) else np.asarray(value, np.float64)
+            except (TypeError, ValueError):
+                x = None
+            if x is None or not (np.isfinite(x).all() and ok(x).all()):
+                raise ValueError(f"TrackerConfig.{name} must be a finite number{rule}, "
+                                 f"got {value!r}")
+
 
 #: The correction ``c(t)`` = rendered minus predicted pose decays like a critically damped
 #: second-order system, ``c(t) = (c0 (1 + s) + c0' t) exp(-s)`` with ``s = t / T``; the time

@@ -131,6 +131,39 @@ BAD_ARGUMENTS = [
 ]
 
 
+@pytest.mark.parametrize("field, value, message", [
+    ("horizon", float("nan"), "TrackerConfig.horizon must be a finite number > 0, got nan"),
+    ("horizon", "0.03", "TrackerConfig.horizon must be a finite number > 0, got '0.03'"),
+    ("horizon", -1.0, "TrackerConfig.horizon must be a finite number > 0, got -1.0"),
+    ("stop_time", 0.0, "TrackerConfig.stop_time must be a finite number > 0, got 0.0"),
+    ("lookahead", 5.0, "tracker.lookahead must be between 0 and 0.2 s, got 5"),
+])
+def test_config_file_values_are_checked(tmp_path, capsys, field, value, message):
+    """A --config file with a value the stream cannot use ends in one line naming the field
+    (a NaN horizon wrote an empty trajectory with status 0; a lookahead of 5 s went round
+    --lookahead's bound)."""
+    import json
+
+    from phjax.tracking.tuning import config_to_dict
+
+    good = tmp_path / "good.txt"
+    good.write_text(TUM_ROW + "2.0 0 0 0 0 0 0 1\n")
+    d = config_to_dict(pj_config())
+    d["tracker"][field] = value
+    cfg = tmp_path / "c.json"
+    cfg.write_text(json.dumps(d))
+    rc, stdout, err = _run(capsys, ["smooth", str(good), "-o", str(tmp_path / "out.txt"),
+                                    "--config", str(cfg)])
+    _assert_one_line_error(rc, stdout, err, message)
+    assert not (tmp_path / "out.txt").exists()
+
+
+def pj_config():
+    from phjax import TrackerConfig
+
+    return TrackerConfig()
+
+
 @pytest.mark.parametrize("argv, message", BAD_ARGUMENTS, ids=lambda x: " ".join(x)
                          if isinstance(x, list) else None)
 def test_bad_arguments_give_one_line_and_status_2(tmp_path, capsys, argv, message):

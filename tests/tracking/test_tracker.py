@@ -629,3 +629,16 @@ def test_unsorted_and_duplicate_times_warn_as_trajectory_warnings():
         pj.track(t, p, q, np.linspace(0, 0.13, 5))
     assert {str(w.message).split(";")[0].split(" (")[0] for w in rec} == {
         "measurement times are not sorted", "dropping 1 measurement(s) with duplicate timestamps"}
+
+
+def test_config_values_the_stream_cannot_use_are_refused():
+    """A horizon or stop time of 0 divides by zero (NaN at every frame instant / after every
+    segment end); strings and NaN are refused too. Traced values are not checked (gradients
+    through the config keep working)."""
+    for kw in ({"horizon": 0.0}, {"horizon": -0.01}, {"stop_time": 0.0}, {"coast_time": -1.0},
+               {"horizon": "0.03"}, {"lookahead": float("nan")}, {"adapt": float("inf")}):
+        name = next(iter(kw))
+        with pytest.raises(ValueError, match=f"TrackerConfig.{name} must be a finite number"):
+            pj.TrackerConfig(**kw)
+    g = jax.grad(lambda h: pj.TrackerConfig(horizon=h).horizon * 2.0)(0.03)
+    assert float(g) == 2.0

@@ -231,7 +231,7 @@ def test_parameter_discovery_and_validation(data):
     assert tuning.default_parameters(KF) == tuning.DEFAULT_PARAMETERS
     with pytest.raises(ValueError, match="unknown tracker parameter"):
         tuning.make_problem(data, parameters=("horizon", "not_a_field"))
-    with pytest.raises(ValueError, match="positive"):
+    with pytest.raises(ValueError, match="horizon must be a finite number > 0"):
         tuning.make_problem(data, config=pj.TrackerConfig(horizon=0.0), parameters=("horizon",))
     prob = tuning.make_problem(data, config=KF, parameters=("kalman.pos_meas_noise", "stop_time"))
     cfg = prob.config_from_params(jnp.log(jnp.asarray([0.01, 0.2])))
