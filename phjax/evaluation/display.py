@@ -427,11 +427,11 @@ def format_choices(comp: DisplayComparison,
             text = f"{ch}: phjax {scale * ph[key]:.3g} {unit}"
             if ok:
                 best = min(ok, key=lambda c: c.metrics[key])
-                ratio = ph[key] / best.metrics[key]
+                ratio = _ratio(ph[key], best.metrics[key])
                 text += (f", the most accurate baseline as smooth is {best.method} with "
                          f"{scale * best.metrics[key]:.3g} (phjax / it {ratio:.2f})")
             if never:
-                least = min(c.metrics[_JERK[ch]] for c in never) / ph[_JERK[ch]]
+                least = _ratio(min(c.metrics[_JERK[ch]] for c in never), ph[_JERK[ch]])
                 text += (f"; {', '.join(c.method for c in never)} never as smooth (at least "
                          f"{least:.2f}x phjax's jerk)")
             verdict.append(text)
@@ -440,6 +440,14 @@ def format_choices(comp: DisplayComparison,
                       + ".", ""]
     lines.append(CHOICES_LEGEND)
     return "\n".join(lines)
+
+
+def _ratio(a: float, b: float) -> float:
+    """``a / b`` for the verdict line: 1 when both are 0 (a still head without noise), inf
+    when only ``b`` is."""
+    if b == 0:
+        return 1.0 if a == 0 else float("inf")
+    return a / b
 
 
 def plot_choices(comp: DisplayComparison, path: str | Path) -> Path:
@@ -482,7 +490,7 @@ def plot_choices(comp: DisplayComparison, path: str | Path) -> Path:
                                       c_.setting == "equal smoothness" and c_.reached[i],
                                       colour))
             lows = [y for y in lows if np.isfinite(y)]
-            if lows and np.isfinite(ref):  # the region of the choices; far-off points on the edge
+            if lows and np.isfinite(ref) and ref > 0:  # the choices' region; far-off points on the edge
                 top = 2.5 * ref
                 ax.set_ylim(0.8 * min(lows), top)
             else:
@@ -506,8 +514,10 @@ def plot_choices(comp: DisplayComparison, path: str | Path) -> Path:
             else:
                 ax.text(0.5, 0.5, f"no {ch} data", ha="center", va="center",
                         transform=ax.transAxes)
-            ax.set_xscale("log")
-            ax.set_xlabel(f"{ch} RMS jerk [{junit}] (log)")
+            log = ph.get(jk, np.nan) > 0  # a still, noise-free head has no jerk to log-scale
+            if log:
+                ax.set_xscale("log")
+            ax.set_xlabel(f"{ch} RMS jerk [{junit}]" + (" (log)" if log else ""))
             ax.set_ylabel(f"{ch} RMSE [{unit}] at the display time")
             ax.set_title(f"{ch}, lookahead {1e3 * L:g} ms")
             ax.grid(True, which="both", alpha=0.3)

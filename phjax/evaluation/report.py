@@ -181,6 +181,11 @@ def evaluate_recording(
                             baseline)
 
 
+#: the fewest render samples an evaluation scores (a third difference for jerk, a few shifts
+#: for lag)
+MIN_RENDER_SAMPLES = 8
+
+
 def simulate_and_grid(gt_times, gt_positions, gt_quaternions, *,
                       sensor: SensorModel | None = None, render_rate: float = 120.0,
                       seed: int = 0):
@@ -208,6 +213,12 @@ def simulate_and_grid(gt_times, gt_positions, gt_quaternions, *,
     start = mt[valid][0] + 1.0 / sensor.rate  # let every method see at least one frame
     # a sample at a frame's own instant sees that frame, whatever the rounding of the clocks
     render = snap_to_frames(mt, np.arange(start, gt_t[-1], 1.0 / render_rate))
+    if render.size < MIN_RENDER_SAMPLES:
+        raise ValueError(
+            f"the recording is too short to evaluate: {gt_t[-1]:.3g} s, of which "
+            f"{max(gt_t[-1] - start, 0):.3g} s after the first simulated frame and one camera "
+            f"period ({render.size} render samples at {render_rate:g} Hz; jerk and lag need "
+            f"{MIN_RENDER_SAMPLES})")
     return gt_t, gt_p, gt_q, (mt, mp, mq), np.asarray(render, np.float64), origin
 
 

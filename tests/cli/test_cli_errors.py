@@ -255,3 +255,28 @@ def test_several_trajectory_files_are_named_file_hash_name(tmp_path, capsys):
                         "FILE#NAME selects one of several trajectories")):
         rc, stdout, err = _run(capsys, ["smooth", spec, "-o", str(tmp_path / "x.txt")])
         _assert_one_line_error(rc, stdout, err, part, "phjax smooth: error:")
+
+
+@pytest.mark.parametrize("command", ["evaluate", "demo"])
+def test_a_recording_too_short_to_score_is_one_line(tmp_path, capsys, command):
+    """Two poses 10 ms apart (under one camera period): no render time is scored; this ended
+    in an IndexError traceback, and 40 ms in a NaN-to-int error after a plot was written."""
+    src = tmp_path / "short.txt"
+    src.write_text("".join(f"{0.01 * k:.2f} {0.001 * k} 0 0 0 0 0 1\n" for k in range(5)))
+    rc, out, err = _run(capsys, [command, str(src), "--plot", str(tmp_path / "p.png"),
+                                 "--no-progress"])
+    _assert_one_line_error(rc, out, err, "the recording is too short to evaluate",
+                           "jerk and lag need 8")
+    assert not (tmp_path / "p.png").exists()
+
+
+def test_a_still_noise_free_head_evaluates(tmp_path, capsys):
+    """Every method exact, every jerk 0: the verdict's ratios and the frontier plot's log
+    scale divided by zero (ZeroDivisionError); now the run completes."""
+    src = tmp_path / "still.txt"
+    src.write_text("".join(f"{0.01 * k:.2f} 1 2 3 0 0 0 1\n" for k in range(300)))
+    rc, out, err = _run(capsys, ["evaluate", str(src), "--sigma-p", "0", "--sigma-r", "0",
+                                 "--dropout", "0", "--plot", str(tmp_path / "p.png"),
+                                 "--no-progress"])
+    assert rc == 0, err
+    assert "Traceback" not in err and (tmp_path / "p.png").is_file()
