@@ -21,6 +21,8 @@ __all__ = [
     "add_rate_argument",
     "add_sensor_arguments",
     "check_output",
+    "check_plot_output",
+    "check_trajectory_output",
     "format_user_error",
     "nonnegative_float",
     "positive_float",
@@ -161,6 +163,39 @@ def check_output(path, what: str = "output") -> Path:
     if not parent.is_dir():
         raise FileNotFoundError(2, f"No such folder for the {what} file", str(parent))
     return p
+
+
+#: figure formats by file extension (matplotlib's savefig)
+PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".svgz", ".jpg", ".jpeg", ".eps", ".ps", ".tif",
+                 ".tiff", ".webp")
+
+
+def check_plot_output(path) -> Path:
+    """:func:`check_output` for a figure: a name without an extension gets ``.png`` (as
+    matplotlib would write it, so that the messages name the real file); an extension
+    matplotlib cannot write is an error before any work."""
+    p = Path(path)
+    if not p.suffix:
+        p = p.with_name(p.name + ".png")
+    elif p.suffix.lower() not in PLOT_SUFFIXES:
+        raise ValueError(f"{path}: cannot write a figure as {p.suffix!r}; use one of "
+                         f"{', '.join(PLOT_SUFFIXES)}")
+    return check_output(p, "plot")
+
+
+def check_trajectory_output(path, format: str = "auto", option: str | None = None) -> Path:
+    """:func:`check_output` for a trajectory file, whose format must also follow from its
+    extension (``.tum`` / ``.txt`` / ``.csv``) or from ``option`` (e.g. ``--out-format``),
+    checked before any work; the error names the command line's ways, not the library's."""
+    from ..io import _writer_format
+
+    try:
+        _writer_format(path, format)
+    except ValueError as e:
+        ways = f"pass {option} tum, euroc or csv, or " if option else ""
+        raise ValueError(str(e).split("; pass format=")[0]
+                         + f"; {ways}name the file .tum, .txt or .csv") from None
+    return check_output(path)
 
 
 #: working memory per item of the commands' arrays, bytes (generous: inputs, outputs, the

@@ -13,7 +13,7 @@ from ._common import (
     BYTES_PER_RENDER_SAMPLE,
     add_rate_argument,
     check_fits,
-    check_output,
+    check_trajectory_output,
     positive_float,
     positive_int,
     replaced_note,
@@ -70,9 +70,9 @@ def cmd_track_rgbd(args) -> int:
     from ..vision.rgbd_io import open_rgbd
     from ..tracking.tracker import track
 
-    check_output(args.output)
+    check_trajectory_output(args.output)
     if args.raw:
-        check_output(args.raw)
+        check_trajectory_output(args.raw)
     seq = open_rgbd(args.source, **_reader_options(args))
     n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
     if n == 0:

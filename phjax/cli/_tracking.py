@@ -18,6 +18,8 @@ from ._common import (
     add_sensor_arguments,
     check_fits,
     check_output,
+    check_plot_output,
+    check_trajectory_output,
     nonnegative_float,
     positive_float,
     read_input,
@@ -65,7 +67,7 @@ def _run_evaluation(times, positions, quaternions, args, title: str) -> int:
     config = config_from_args(args) or TrackerConfig()
     config = eqx.tree_at(lambda c: c.lookahead, config, 0.0)  # the display times are set below
     if args.plot:
-        check_output(args.plot, "plot")
+        args.plot = str(check_plot_output(args.plot))
         check_output(_methods_plot_path(args.plot), "plot")
     span = float(np.nanmax(times) - np.nanmin(times)) if len(times) else 0.0
     check_fits({f"--rate {args.rate:g} Hz over {span:.3g} s":
@@ -163,12 +165,11 @@ def cmd_evaluate(args) -> int:
 
 def cmd_smooth(args) -> int:
     _x64()
-    from ..io import Trajectory, _writer_format, write_trajectory
+    from ..io import Trajectory, write_trajectory
     from ..tracking.tracker import reconstruct, track
     from ._tune import config_from_args, with_noise_from_args
 
-    _writer_format(args.output, args.out_format)  # before any work: a usable output name
-    check_output(args.output)
+    check_trajectory_output(args.output, args.out_format, "--out-format")
     config = config_from_args(args)
     if args.lookahead is not None:
         lookahead = check_lookahead(args.lookahead)

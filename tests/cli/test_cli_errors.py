@@ -110,9 +110,14 @@ BAD_ARGUMENTS = [
     (["smooth", "FILE", "-o", "OUT.txt", "--out-format", "kitti"], "argument --out-format"),
     (["evaluate", "FILE", "--format", "kitti"], "argument --format: invalid choice"),
     (["demo-curve", "FILE", "--format", "kitti"], "argument --format: invalid choice"),
-    (["smooth", "FILE", "-o", "OUT.xyz"], "cannot choose a format from the extension '.xyz'"),
+    (["smooth", "FILE", "-o", "OUT.xyz"], "cannot choose a format from the extension '.xyz'; "
+     "pass --out-format tum, euroc or csv, or name the file .tum, .txt or .csv"),
+    (["track-rgbd", "synthetic:2", "-o", "OUT.xyz"], "extension '.xyz'; name the file .tum"),
+    (["track-rgbd", "synthetic:2", "-o", "OUT.tum", "--raw", "OUT"], "extension ''; name the"),
     (["smooth", "FILE", "-o", "NOFOLDER/o.txt"], "No such folder for the output file"),
     (["evaluate", "FILE", "--plot", "NOFOLDER/p.png"], "No such folder for the plot file"),
+    (["evaluate", "FILE", "--plot", "OUT.xyz", "--no-progress"],
+     "cannot write a figure as '.xyz'; use one of .png"),
     (["smooth", "FILE", "-o", "OUT.txt", "--config", "NOFOLDER/c.json"], "c.json"),
     (["track-rgbd", "NOFOLDER", "-o", "OUT.tum"], "RGB-D source not found"),
     (["track-rgbd", "synthetic:2", "-o", "OUT.tum", "--model-dir", "NOFOLDER"],
@@ -280,3 +285,15 @@ def test_a_still_noise_free_head_evaluates(tmp_path, capsys):
                                  "--no-progress"])
     assert rc == 0, err
     assert "Traceback" not in err and (tmp_path / "p.png").is_file()
+
+
+def test_a_plot_name_without_extension_is_written_and_named_as_png(tmp_path, capsys):
+    """matplotlib appends .png to such a name; the messages (and the "replaced" note) named
+    the file without it."""
+    src = tmp_path / "walk.txt"
+    src.write_text("".join(f"{0.01 * k:.2f} {0.002 * k} 0 0 0 0 0 1\n" for k in range(100)))
+    rc, out, err = _run(capsys, ["evaluate", str(src), "--plot", str(tmp_path / "fig"),
+                                 "--no-progress"])
+    assert rc == 0, err
+    assert f"frontier plot written to {tmp_path / 'fig.png'}" in out
+    assert (tmp_path / "fig.png").is_file() and (tmp_path / "fig_methods.png").is_file()
