@@ -111,6 +111,15 @@ _ZERO_NORM = 1e-12  # quaternions with a smaller norm are rejected as "zero"
 _ROTATION_TOL = 1e-3  # Biwi: max |R^T R - I| and |det R - 1|
 
 
+def _scaled_norm(q: np.ndarray) -> np.ndarray:
+    """Norm over the last axis that neither overflows nor underflows (components like 1e200
+    are a valid direction; NaN rows stay NaN)."""
+    m = np.max(np.abs(q), axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        unit = q / np.where(m > 0, m, 1.0)[..., None]
+    return m * np.linalg.norm(unit, axis=-1)
+
+
 # ----------------------------------------------------------------------------------------------
 # Trajectory, errors
 # ----------------------------------------------------------------------------------------------
@@ -278,7 +287,7 @@ def _check_values(
         raise _err(path, ln, f"infinite {labels[1]} (use nan for a missing position)")
     if (ln := first(np.any(np.isinf(q), axis=-1))) is not None:
         raise _err(path, ln, f"infinite {labels[2]} (use nan for a lost frame)")
-    zero = ~np.any(np.isnan(q), axis=-1) & (np.linalg.norm(q, axis=-1) < _ZERO_NORM)
+    zero = ~np.any(np.isnan(q), axis=-1) & (_scaled_norm(q) < _ZERO_NORM)
     if (ln := first(zero)) is not None:
         raise _err(path, ln, f"zero-norm {labels[2]}")
 
@@ -320,6 +329,7 @@ def _canonicalise(t: np.ndarray, p: np.ndarray, q: np.ndarray, source: str) -> T
     q = np.where(lost[:, None], np.nan, q)
     if not np.all(lost):  # continuity across lost frames: between consecutive valid rows
         qv = q[~lost]
+        qv = qv / np.max(np.abs(qv), axis=-1, keepdims=True)  # no overflow in the norm
         q[~lost] = _np_hemisphere(qv / np.linalg.norm(qv, axis=-1, keepdims=True))
     return Trajectory(
         np.ascontiguousarray(t, dtype=np.float64),
@@ -345,7 +355,7 @@ def _validate_arrays(times, positions, quaternions) -> tuple[np.ndarray, np.ndar
         raise ValueError("quaternions must not be infinite (use nan for a lost frame)")
     if np.any(np.isinf(p)):
         raise ValueError("positions must not be infinite (use nan for missing)")
-    if np.any(~np.any(np.isnan(q), axis=-1) & (np.linalg.norm(q, axis=-1) < _ZERO_NORM)):
+    if np.any(~np.any(np.isnan(q), axis=-1) & (_scaled_norm(q) < _ZERO_NORM)):
         raise ValueError("quaternions must be non-zero (use nan for a lost frame)")
     return t, p, q
 
@@ -658,7 +668,7 @@ def read_avtrack360(path: PathLike) -> dict[str, Trajectory]:
                 v = s.get(key) if isinstance(s, dict) else None
                 lost = key != "sec" and isinstance(v, float) and math.isnan(v)
                 if (isinstance(v, bool) or not isinstance(v, (int, float))
-                        or not (math.isfinite(v) or lost)):
+                        or not (lost or (abs(v) < 1e300 and math.isfinite(v)))):
                     raise _err(
                         path, None,
                         f"{where}.pitch_yaw_roll_data_hmd[{j}]: missing or non-finite {key!r}",
@@ -947,7 +957,13 @@ def write_trajectory(path: PathLike, traj: Trajectory, format: str = "auto") -> 
         traj: the :class:`Trajectory`.
         format: ``"auto"``, ``"tum"``, ``"euroc"`` or ``"csv"``.
     """
-    _WRITERS[_writer_format(path, format)](path, traj)
+    writer = _WRITERS[_writer_format(path, format)]
+    try:
+        writer(path, traj)
+    except OSError as e:  # a full disk says "No space left on device" without the file
+        if e.filename is None and e.errno is not None:
+            raise OSError(e.errno, e.strerror, os.fspath(path)) from e
+        raise
 
 
 def _writer_format(path: PathLike, format: str = "auto") -> str:

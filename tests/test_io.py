@@ -839,3 +839,35 @@ def test_writers_keep_lost_frames(tmp_path, writer, fname):
     np.testing.assert_array_equal(back.quaternions, q)
     with pytest.raises(ValueError, match="infinite"):
         writer(path, tr._replace(quaternions=np.where(np.isnan(q), np.inf, q)))
+
+
+def test_huge_components_are_a_direction_and_huge_degrees_a_format_error(tmp_path):
+    """A quaternion written with components like 1e200 is a valid direction (its norm
+    overflowed to inf: read as the zero quaternion, with a NumPy overflow warning); an
+    AVTrack360 angle too large for a float is a format error naming the sample (it was an
+    OverflowError traceback)."""
+    f = tmp_path / "big.txt"
+    f.write_text("1 0 0 0 0 0 0 1\n2 0 0 0 1e200 0 0 1e200\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        q = io.read_trajectory(f).quaternions
+    np.testing.assert_allclose(q[1], [np.sqrt(0.5), np.sqrt(0.5), 0, 0], atol=1e-15)
+    big = {"data": [{"filename": "a.mp4", "pitch_yaw_roll_data_hmd": [
+        {"pitch": 0, "yaw": 0, "roll": 0, "sec": 0.0},
+        {"pitch": 0, "yaw": 10 ** 400, "roll": 0, "sec": 0.1}]}]}
+    j = tmp_path / "av.json"
+    j.write_text(json.dumps(big))
+    with pytest.raises(TrajectoryFormatError, match=r"\[1\]: missing or non-finite 'yaw'"):
+        io.read_avtrack360(j)
+
+
+def test_a_write_error_names_the_file(tmp_path):
+    """A full disk ("No space left on device") said so without naming the file."""
+    import os
+
+    if not os.path.exists("/dev/full"):
+        pytest.skip("no /dev/full on this system")
+    traj = Trajectory(np.array([0.0, 1.0]), np.zeros((2, 3)), np.tile([1.0, 0, 0, 0], (2, 1)))
+    with pytest.raises(OSError) as e:
+        io.write_trajectory("/dev/full", traj, format="tum")
+    assert e.value.filename == "/dev/full" and "No space left" in e.value.strerror

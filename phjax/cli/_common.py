@@ -226,7 +226,7 @@ def check_fits(counts: dict[str, tuple[float, int]]) -> None:
     if need > total / 2:
         what = max(counts, key=lambda k: counts[k][0] * counts[k][1])
         n = counts[what][0]
-        raise ValueError(f"{what} makes {n:.3g} samples: about {need / 2**30:,.0f} GiB of "
+        raise ValueError(f"{what} makes {n:.3g} samples: about {need / 2**30:,.4g} GiB of "
                          f"memory, more than half of this machine's {total / 2**30:.0f} GiB; "
                          "lower the rate or shorten the recording")
 

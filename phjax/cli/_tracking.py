@@ -272,7 +272,8 @@ def add_commands(sub) -> None:
                        "position and/or quaternion is NaN is a lost frame for that part and is "
                        "bridged by the tracker), run the causal phjax stream (or the offline "
                        "reconstruction with --offline) and write the poses at --rate to OUTPUT "
-                       "(render times before the first valid pose are left out). At least 2 "
+                       "(the causal stream leaves out render times before the first valid "
+                       "pose; --offline holds that pose there). At least 2 "
                        "poses are needed.")
     p.add_argument("input", help="measured trajectory file")
     add_output_argument(p, "output file (.txt/.tum = TUM, .csv = plain CSV; see --out-format)")

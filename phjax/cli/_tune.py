@@ -98,7 +98,11 @@ def with_noise_from_args(args, config, times, positions, quaternions):
         return config, None
     config = TrackerConfig() if config is None else config
     if value == "auto":
-        noise = estimate_measurement_noise(times, positions, quaternions)
+        try:
+            noise = estimate_measurement_noise(times, positions, quaternions)
+        except ValueError as e:
+            raise ValueError(f"--measurement-noise auto: cannot estimate the noise from this "
+                             f"input ({e}); give it as MM,DEG") from None
         pos, rot = float(noise.pos_meas_noise), float(noise.rot_meas_noise)
         pos = pos if np.isfinite(pos) and pos > 0 else None
         rot = rot if np.isfinite(rot) and rot > 0 else None

@@ -166,6 +166,8 @@ class PoseReplaySource(Source):
             traj = read_trajectory_spec(path, syntax="poses:FILE#NAME")
         except ValueError as e:  # a bad file, or FILE#NAME missing / wrong: one line
             raise SourceError(str(e)) from None
+        if traj.num_samples < 2:  # as phjax smooth: one pose is no motion to replay
+            raise SourceError(f"{path}: {traj.num_samples} pose(s); a replay needs at least 2")
         return cls(traj.times, traj.positions, traj.quaternions, name=f"poses {path}")
 
     def run(self, clock, t0, stop, emit) -> None:

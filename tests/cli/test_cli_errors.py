@@ -131,6 +131,8 @@ BAD_ARGUMENTS = [
      "argument --measurement-noise: expected"),
     (["track-rgbd", "synthetic:2", "-o", "OUT.tum", "--measurement-noise", "nan,1"],
      "argument --measurement-noise: stds must be positive and finite"),
+    (["smooth", "FILE", "-o", "OUT.txt", "--measurement-noise", "auto"],
+     "--measurement-noise auto: cannot estimate the noise from this input"),  # 2 poses
     ([], "the following arguments are required: command"),
     (["frobnicate"], "invalid choice: 'frobnicate'"),
 ]

@@ -422,3 +422,18 @@ def test_velocity_jump_of_a_c1_stream_is_truncation_error_that_vanishes_with_spa
     # away from the knots the metric is exact: one piece sampled alone
     t = np.linspace(knots[10] + 1e-3, knots[11] - 1e-3, 50)
     assert rms_jerk_position(t, spline(t)).value == pytest.approx(jerk_pieces[10], rel=1e-6)
+
+
+def test_evaluate_recording_of_position_only_ground_truth():
+    """Ground truth without orientations (NaN quaternions) is scored on its positions; it
+    ended in "the simulated sensor produced no valid measurement" (a frame counted as valid
+    only with a quaternion)."""
+    from phjax.evaluation import evaluate_recording
+    from phjax.evaluation.report import default_methods
+
+    t = np.linspace(0, 3, 301)
+    q = np.full((t.size, 4), np.nan)
+    res = evaluate_recording(t, _helix(t), q, methods=default_methods()[:1])
+    m = next(iter(res.metrics.values()))
+    assert np.isfinite(m["position_rmse"]) and m["position_rmse"] < 0.02
+    assert np.isnan(m["rotation_rmse_deg"])

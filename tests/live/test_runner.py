@@ -694,3 +694,11 @@ def test_soak_one_hour_of_camera_frames(tmp_path):
     assert os.path.getsize(tmp_path / "soak.tum") > 0
     counter.close()
     assert counter.count == lt.sent
+
+
+def test_a_pose_file_with_one_pose_is_refused(tmp_path):
+    """One pose is no motion to replay (as for phjax smooth); it was sent for ~2 s."""
+    f = tmp_path / "one.txt"
+    f.write_text("1 0 0 0 0 0 0 1\n")
+    with pytest.raises(SourceError, match="1 pose\\(s\\); a replay needs at least 2"):
+        open_source(f"poses:{f}")
