@@ -21,6 +21,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from .._misc import safe_div
 from . import _components as _c
 from .ph_quintic import _sample_axes
 
@@ -80,7 +81,7 @@ class QuaternionHermite(eqx.Module):
 
     def angular_velocity(self, s: Float[ArrayLike, "*#batch S"]) -> Float[Array, "*batch S 3"]:
         """World-frame angular velocity (rad/s, physical time) at ``s`` (shapes as
-        :meth:`rotation`)."""
+        :meth:`rotation`; 0 on a segment of zero duration)."""
         s, k = self._prep_s(s)
         _, (d1, d2, d3) = self._basis(s)
         w1, w2, w3 = (_c.split(self._ex(w, k)) for w in (self.w1, self.w2, self.w3))
@@ -92,7 +93,8 @@ class QuaternionHermite(eqx.Module):
         omega = _c.add(_c.add(_c.scale(d3, w3), rot(e3, _c.scale(d2, w2))),
                        rot(_c.qmul(e3, e2), _c.scale(d1, w1)))
         dur = self.duration.reshape(self.duration.shape + (1,) * k)
-        return _c.stack(tuple(2 * x / dur for x in omega))
+        # a zero-duration segment has no rate of its own: 0, with finite gradients
+        return _c.stack(tuple(safe_div(2 * x, dur) for x in omega))
 
 
 def _hermite_factors(q0, q1, w0, w1, duration):

@@ -515,10 +515,12 @@ class PHQuintic(eqx.Module):
         ``rho = 4 (b_y^2 + b_z^2)`` (0 where the curvature vanishes)."""
         t, k = self._prep_t(t)
         _, _, sigma, b = self._curv_parts(t, k)
-        d1, d2, d3 = self._derivs(t, k)
-        num = dot_last(jnp.cross(d1, d2), d3)
-        den = sigma * sigma * 4 * (b[..., 1] ** 2 + b[..., 2] ** 2)
-        return safe_div(num, den)
+        # in units of the speed (each factor O(1) at any data scale: the quotient's backward
+        # pass of the raw form divides by sigma^4 rho^2 ~ s^8, which overflows for tiny data)
+        e1, e2, e3 = (safe_div(d, sigma[..., None]) for d in self._derivs(t, k))
+        bn = safe_div(b, sigma[..., None])
+        rho = 4 * (bn[..., 1] ** 2 + bn[..., 2] ** 2)
+        return safe_div(dot_last(jnp.cross(e1, e2), e3), rho * sigma)
 
     @filter_jit
     def bending_energy(self, num_nodes: int = 64) -> Float[Array, "*batch"]:

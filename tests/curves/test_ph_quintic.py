@@ -742,6 +742,29 @@ def test_huge_and_tiny_scales():
         assert np.all(np.isfinite(np.asarray(c.frame(np.linspace(0, 1, 5)))))
 
 
+@pytest.mark.parametrize("dtype, scales", [(jnp.float32, [1e-4, 1e-8, 1e-9]),
+                                           (jnp.float64, [1e-8, 1e-50, 1e-76])])
+def test_torsion_scales_as_one_over_size_with_finite_gradients(dtype, scales):
+    """tau(s r) = tau(r) / s, down to the constant-curve cutoff, with finite gradients: the
+    quotient's backward pass divided by sigma^4 rho^2 (~s^8) and was NaN from 1e-8 (float32)
+    and 1e-50 (float64) on."""
+    if dtype == jnp.float64 and not jax.config.jax_enable_x64:
+        pytest.skip("x64 disabled")
+    base = (jnp.zeros(3, dtype), jnp.array([1.0, 0, 0], dtype), jnp.array([0.0, 1, 0], dtype),
+            jnp.array([0.0, 0, 1], dtype))
+
+    def tau(s, d0):
+        p0, p1, _, d1 = base
+        return s * pj.hermite_quintic(s * p0, s * p1, s * d0, s * d1).torsion(dtype(0.5))
+
+    ref = float(tau(dtype(1), base[2]))
+    for s in scales:
+        s = dtype(s)
+        np.testing.assert_allclose(float(tau(s, base[2])), ref, rtol=1e-5)
+        g = jax.grad(lambda d0, s=s: tau(s, d0) / s)(base[2])
+        assert np.all(np.isfinite(np.asarray(g))), (s, g)
+
+
 def test_nan_input_propagates_without_exception():
     c = jax.jit(pj.hermite_quintic)(np.array([np.nan, 0, 0]), np.ones(3), np.ones(3), np.ones(3))
     assert np.all(np.isnan(np.asarray(c.control_points)[1:]))

@@ -55,6 +55,12 @@ def test_quaternion_hermite_degenerate_finite():
         g = jax.grad(lambda w, q1=q1: jnp.sum(
             pj.quaternion_hermite(q, q1, w, w, 0.1).rotation(0.3)))(jnp.asarray(w))
         assert np.all(np.isfinite(np.asarray(g)))
+    # a zero-duration segment: angular velocity 0 (it divided by the duration: NaN)
+    c = pj.quaternion_hermite(q, q, np.ones(3), np.zeros(3), 0.0)
+    np.testing.assert_array_equal(np.asarray(c.angular_velocity(np.linspace(0, 1, 3))), 0.0)
+    g = jax.grad(lambda d: jnp.sum(pj.quaternion_hermite(q, half_turn, np.ones(3), np.zeros(3),
+                                                         d).angular_velocity(0.5)))(0.0)
+    assert np.isfinite(float(g))
 
 
 # ------------------------------------------------------------------------------ stream
