@@ -33,6 +33,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._jit import Tiered, jit
 from .._np_quat import np_valid_quaternions
 from .tracker import (
+    check_config,
     TrackerConfig,
     TrackerState,
     _sample,
@@ -121,6 +122,7 @@ class TrackerStream:
 
     def __init__(self, config: TrackerConfig | None = None, t: float | None = None,
                  dtype=jnp.float32, fast_start: bool = True):
+        check_config(config)
         config = TrackerConfig() if config is None else config
         state = tracker_init(config, 0.0, dtype)
         #: the time (s) the state's times are relative to (``t``, else the first update's time)
@@ -163,6 +165,7 @@ class TrackerStream:
 
     def set_config(self, config: TrackerConfig) -> None:
         """Use another config (one of the same structure does not recompile)."""
+        check_config(config)
         leaves, self._config_def = jax.tree.flatten(tracker_config_arrays(config, self.dtype))
         self._update = self._program(_update)
         self._config_leaves = leaves

@@ -591,6 +591,38 @@ def _prepare_recording(times, positions, quaternions, render_times):
             (orientation_only, position_only))
 
 
+def check_config(config) -> None:
+    """``TypeError`` (outside jit) unless ``config`` is a :class:`TrackerConfig` or ``None``."""
+    if config is not None and not isinstance(config, TrackerConfig):
+        hint = (" (phjax.tracking.tuning.config_from_dict reads one from a dict)"
+                if isinstance(config, dict) else "")
+        raise TypeError(f"config must be a phjax.TrackerConfig{hint}, got "
+                        f"{type(config).__name__}")
+
+
+def _traced(*arrays) -> bool:
+    """Whether any input is a JAX tracer (inside ``jax.jit``, ``vmap``, ``grad``...)."""
+    return any(isinstance(x, jax.core.Tracer) for x in arrays)
+
+
+def _run_traced(core, config, times, positions, quaternions, render_times, dtype):
+    """``track`` / ``reconstruct`` inside a JAX transformation: the recording(s) as given, with
+    no host-side sorting, de-duplication, padding or checks (times must be finite and strictly
+    increasing; one-part data is not completed), through the same jitted core, vmapped over
+    the batch axes; times relative to each recording's first."""
+    dtype = _float_dtype(dtype)
+    t, p, q, r = (jnp.asarray(x, dtype) for x in (times, positions, quaternions, render_times))
+    batch = t.shape[:-1]
+    r = jnp.broadcast_to(r, batch + r.shape[-1:])
+
+    def one(t, p, q, r):
+        return core(config, t - t[0], p, q, r - t[0])
+
+    for _ in batch:
+        one = jax.vmap(one)
+    return one(t, p, q, r)
+
+
 def _run_recording(core, config, times, positions, quaternions, render_times, dtype,
                    hold_end=False):
     """Validate and normalise a recording (outside jit), pad it to its size class
@@ -670,6 +702,11 @@ def track(
     along axis 0 (:func:`phjax.batch.shard_batch`) run on each device's part of the batch and
     the outputs come back sharded the same way.
 
+    **Inside** ``jax.jit``, ``jax.vmap`` or ``jax.grad`` (any input a tracer) the recordings
+    are used as given, without the host-side steps: times finite and strictly increasing, no
+    padding frames, no size classes, one-part data not completed; the results equal the host
+    path's for such data.
+
     Arguments:
         times: measurement times, s (one recording: sorted and de-duplicated here with a
             warning if needed; internally relative to the first time, so absolute epoch times
@@ -688,7 +725,11 @@ def track(
         ``(positions (*B, M, 3), quaternions (*B, M, 4))``; NaN before the first valid
         measurement (and at padded render times).
     """
-    if jnp.ndim(times) > 1:
+    check_config(config)
+    if _traced(times, positions, quaternions, render_times):
+        return _run_traced(_track_core, config, times, positions, quaternions, render_times,
+                           dtype)
+    if np.ndim(times) > 1:
         return run_batch(_track_core, config, times, positions, quaternions, render_times, dtype)
     return _run_recording(_track_core, config, times, positions, quaternions, render_times, dtype)
 
@@ -756,7 +797,11 @@ def reconstruct(
     Returns:
         ``(positions (*B, M, 3), quaternions (*B, M, 4))``.
     """
-    if jnp.ndim(times) > 1:
+    check_config(config)
+    if _traced(times, positions, quaternions, render_times):
+        return _run_traced(_reconstruct_core, config, times, positions, quaternions,
+                           render_times, dtype)
+    if np.ndim(times) > 1:
         return run_batch(_reconstruct_core, config, times, positions, quaternions, render_times,
                          dtype, hold_end=True)
     return _run_recording(_reconstruct_core, config, times, positions, quaternions, render_times,
