@@ -33,8 +33,23 @@ __all__ = [
 ]
 
 
-def _split(q):
-    q = jnp.asarray(q)
+def _last(x, n: int, name: str):
+    """``x`` as an array of floats whose last axis has ``n`` entries (``ValueError`` naming
+    ``name`` otherwise; a check of the static shape, so also inside ``jit``)."""
+    x = jnp.asarray(x)
+    if x.ndim < 1 or x.shape[-1] != n:
+        raise ValueError(f"{name} must have shape (..., {n}), got shape {tuple(x.shape)}")
+    if not jnp.issubdtype(x.dtype, jnp.inexact):
+        x = x.astype(jnp.result_type(float))
+    return x
+
+
+def _quat(q, name: str = "q"):
+    return _last(q, 4, name)
+
+
+def _split(q, name: str = "q"):
+    q = _quat(q, name)
     return q[..., 0], q[..., 1:]
 
 
@@ -46,8 +61,8 @@ def quat_identity(shape: tuple[int, ...] = (), dtype=None) -> Float[Array, "*sha
 
 def quat_mul(p: Float[ArrayLike, "... 4"], q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
     """Hamilton product ``p q`` (``(a, u)(b, v) = (ab - u.v, a v + b u + u x v)``)."""
-    a, u = _split(p)
-    b, v = _split(q)
+    a, u = _split(p, "p")
+    b, v = _split(q, "q")
     w = a * b - dot_last(u, v)
     xyz = a[..., None] * v + b[..., None] * u + jnp.cross(u, v)
     return jnp.concatenate([w[..., None], xyz], axis=-1)
@@ -55,26 +70,26 @@ def quat_mul(p: Float[ArrayLike, "... 4"], q: Float[ArrayLike, "... 4"]) -> Floa
 
 def quat_conj(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
     """Conjugate ``q* = (w, -x, -y, -z)``."""
-    q = jnp.asarray(q)
+    q = _quat(q)
     return q * jnp.asarray([1, -1, -1, -1], dtype=q.dtype)
 
 
 def quat_inv(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
     """Inverse ``q* / |q|^2`` (0 for the zero quaternion)."""
-    q = jnp.asarray(q)
+    q = _quat(q)
     return safe_div(quat_conj(q), dot_last(q, q, keepdims=True))
 
 
 def quat_normalize(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
     """``q / |q|``; the zero quaternion maps to the identity."""
-    q = jnp.asarray(q)
+    q = _quat(q)
     return safe_normalize(q, quat_identity(dtype=q.dtype))
 
 
 def quat_rotate(q: Float[ArrayLike, "... 4"], v: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
     """Rotate vectors ``v`` by unit quaternions ``q`` (vector part of ``q v q*``)."""
     w, u = _split(q)
-    v = jnp.asarray(v)
+    v = _last(v, 3, "v")
     t = 2 * jnp.cross(u, v)
     return v + w[..., None] * t + jnp.cross(u, t)
 
@@ -83,14 +98,14 @@ def quat_sandwich(
     a: Float[ArrayLike, "... 4"], u: Float[ArrayLike, "... 3"], b: Float[ArrayLike, "... 4"]
 ) -> Float[Array, "... 3"]:
     """Vector part of ``A u B*`` for a pure quaternion (vector) ``u``."""
-    u = jnp.asarray(u)
+    u = _last(u, 3, "u")
     uq = jnp.concatenate([jnp.zeros_like(u[..., :1]), u], axis=-1)
     return quat_mul(quat_mul(a, uq), quat_conj(b))[..., 1:]
 
 
 def quat_to_matrix(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 3 3"]:
     """Rotation matrix of a unit quaternion (columns are the images of the basis vectors)."""
-    q = jnp.asarray(q)
+    q = _quat(q)
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     r = jnp.stack(
         [
@@ -110,6 +125,9 @@ def quat_from_matrix(m: Float[ArrayLike, "... 3 3"]) -> Float[Array, "... 4"]:
     result is accurate for every rotation including 180-degree turns.
     """
     m = jnp.asarray(m)
+    if m.ndim < 2 or m.shape[-2:] != (3, 3):
+        raise ValueError(f"m must have shape (..., 3, 3), got shape {tuple(m.shape)}")
+    m = _last(m, 3, "m")
     m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
     tr = m00 + m11 + m22
     # 4 w^2, 4 x^2, 4 y^2, 4 z^2 (up to the factor 1 + ...)
@@ -137,7 +155,7 @@ def quat_from_matrix(m: Float[ArrayLike, "... 3 3"]) -> Float[Array, "... 4"]:
 
 def quat_exp(v: Float[ArrayLike, "... 3"]) -> Float[Array, "... 4"]:
     """Exponential of the pure quaternion ``v``: ``(cos|v|, sin|v| v/|v|)``."""
-    v = jnp.asarray(v)
+    v = _last(v, 3, "v")
     n = safe_norm(v)
     sinc = jnp.sinc(n / jnp.pi)  # sin(n)/n, smooth at 0
     return jnp.concatenate([jnp.cos(n)[..., None], sinc[..., None] * v], axis=-1)
@@ -161,12 +179,12 @@ def quat_log(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 3"]:
 
 def quat_from_rotvec(w: Float[ArrayLike, "... 3"]) -> Float[Array, "... 4"]:
     """Unit quaternion of the rotation vector ``w`` (angle ``|w|`` about ``w/|w|``)."""
-    return quat_exp(jnp.asarray(w) / 2)
+    return quat_exp(_last(w, 3, "w") / 2)
 
 
 def quat_to_rotvec(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 3"]:
     """Rotation vector (angle in ``[0, pi]`` times axis) of a unit quaternion (shortest arc)."""
-    q = jnp.asarray(q)
+    q = _quat(q)
     q = jnp.where(q[..., :1] < 0, -q, q)
     return 2 * quat_log(q)
 
@@ -175,7 +193,7 @@ def quat_slerp(
     q0: Float[ArrayLike, "... 4"], q1: Float[ArrayLike, "... 4"], t: Float[ArrayLike, "..."]
 ) -> Float[Array, "... 4"]:
     """Spherical linear interpolation along the shortest arc, ``t`` in ``[0, 1]``."""
-    q0, q1 = jnp.asarray(q0), jnp.asarray(q1)
+    q0, q1 = _quat(q0, "q0"), _quat(q1, "q1")
     t = jnp.asarray(t)
     dq = quat_mul(quat_conj(q0), q1)
     dq = jnp.where(dq[..., :1] < 0, -dq, dq)
@@ -184,7 +202,7 @@ def quat_slerp(
 
 def quat_geodesic_distance(q0: Float[ArrayLike, "... 4"], q1: Float[ArrayLike, "... 4"]) -> Array:
     """Rotation angle (rad, in ``[0, pi]``) of ``q0* q1`` for unit quaternions."""
-    dq = quat_mul(quat_conj(q0), q1)
+    dq = quat_mul(quat_conj(_quat(q0, "q0")), _quat(q1, "q1"))
     return 2 * safe_atan2(safe_norm(dq[..., 1:]), jnp.abs(dq[..., 0]))
 
 
@@ -194,7 +212,7 @@ def quat_hemisphere_continuity(q: Float[ArrayLike, "... n 4"]) -> Float[Array, "
     The sign of element ``k`` is the running product of ``sign(q_j . q_{j-1})`` for ``j <= k``,
     computed with a cumulative product (no Python loop). The first element is left unchanged.
     """
-    q = jnp.asarray(q)
+    q = _quat(q)
     dots = jnp.sum(q[..., 1:, :] * q[..., :-1, :], axis=-1)
     s = jnp.where(dots < 0, -1, 1).astype(q.dtype)
     s = jnp.concatenate([jnp.ones_like(s[..., :1]), jnp.cumprod(s, axis=-1)], axis=-1)

@@ -118,3 +118,27 @@ def test_float32_stays_float32():
     q = jnp.asarray([0.5, 0.5, 0.5, 0.5], jnp.float32)
     for out in [pj.quat_mul(q, q), pj.quat_to_matrix(q), pj.quat_log(q), pj.quat_slerp(q, q, 0.3)]:
         assert out.dtype == jnp.float32
+
+
+def test_wrong_last_axis_is_a_clear_error_and_integers_are_floats():
+    """A quaternion with 3 entries (or a vector with 4) was silently misread (quat_log of a
+    3-vector gave 2 numbers, quat_exp of a 4-vector 5) or failed deep inside JAX."""
+    bad = [(lambda: pj.quat_log(np.ones(3)), "q must have shape \\(..., 4\\), got shape \\(3,\\)"),
+           (lambda: pj.quat_exp(np.ones(4)), "v must have shape \\(..., 3\\)"),
+           (lambda: pj.quat_to_matrix(np.ones(3)), "q must have shape"),
+           (lambda: pj.quat_mul(np.ones((5, 3)), np.ones((5, 4))), "p must have shape"),
+           (lambda: pj.quat_rotate(np.ones(4), np.ones(4)), "v must have shape"),
+           (lambda: pj.quat_from_matrix(np.ones(3)), "m must have shape \\(..., 3, 3\\)"),
+           (lambda: pj.quat_slerp(np.ones(4), np.ones(3), 0.5), "q1 must have shape"),
+           (lambda: pj.quat_from_rotvec(np.ones(2)), "w must have shape"),
+           (lambda: pj.quaternion_hermite(np.ones(3), np.ones(4), np.zeros(3), np.zeros(3), 0.1),
+            "q0 must have shape"),
+           (lambda: pj.quaternion_hermite(np.ones(4), np.ones(4), np.zeros(4), np.zeros(3), 0.1),
+            "w0 must have shape")]
+    for call, message in bad:
+        with pytest.raises(ValueError, match=message):
+            call()
+    with pytest.raises(ValueError, match="q must have shape"):  # also when traced
+        jax.jit(pj.quat_log)(np.ones(3))
+    np.testing.assert_array_equal(np.asarray(pj.quat_normalize(np.array([2, 0, 0, 0]))),
+                                  [1.0, 0, 0, 0])

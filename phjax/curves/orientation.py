@@ -131,6 +131,9 @@ def quaternion_hermite(
         A :class:`QuaternionHermite`.
     """
     q0, q1, w0, w1 = (jnp.asarray(x) for x in (q0, q1, w0, w1))
+    for name, x, n in (("q0", q0, 4), ("q1", q1, 4), ("w0", w0, 3), ("w1", w1, 3)):
+        if x.ndim < 1 or x.shape[-1] != n:
+            raise ValueError(f"{name} must have shape (..., {n}), got shape {tuple(x.shape)}")
     dtype = jnp.result_type(float, q0, q1, w0, w1)
     q0, q1, w0, w1 = (x.astype(dtype) for x in (q0, q1, w0, w1))
     duration = jnp.asarray(duration, dtype)

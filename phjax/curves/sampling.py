@@ -35,6 +35,19 @@ def _check_by(by):
         raise ValueError(f"by must be 'time' or 'arclength', got {by!r}")
 
 
+def _check_curves(curves):
+    if not isinstance(curves, PHQuintic):
+        raise TypeError(f"curves must be a PHQuintic (phjax.hermite_quintic builds them), got "
+                        f"{type(curves).__name__}")
+
+
+def _check_n(n) -> int:
+    """``n`` as the number of samples: an integer >= 1, not a float rounded down."""
+    if isinstance(n, bool) or int(n) != n or int(n) < 1:
+        raise ValueError(f"n must be an integer >= 1 (samples per curve), got {n!r}")
+    return int(n)
+
+
 def _sample_impl(curves: PHQuintic, *, n: int, by: str, with_t: bool = True):
     """Parameters (``None`` unless ``with_t``) and points of every curve at ``n`` samples."""
     u = jnp.linspace(0, 1, n, dtype=curves.dtype)
@@ -70,7 +83,8 @@ def sample(
         ``(*batch, n, 3, 3)``.
     """
     _check_by(by)
-    static = {"n": int(n), "by": by}
+    _check_curves(curves)
+    static = {"n": _check_n(n), "by": by}
     sharding = _leading_sharding(curves) if curves.batch_shape else None
     if sharding is not None:
         return _sharded_function(_sample_impl, sharding, (curves,), static)(curves)

@@ -108,6 +108,9 @@ def simulate_measurements(
         raise ValueError("sigma_p, sigma_r and jitter must be non-negative")
     # host arrays: jnp.asarray of a NumPy array compiles a small program for every shape
     gt_p, gt_q = np.asarray(gt_positions), np.asarray(gt_quaternions)
+    if gt_p.shape != (gt_t.size, 3) or gt_q.shape != (gt_t.size, 4):
+        raise ValueError(f"expected gt_times (n,), gt_positions (n, 3), gt_quaternions (n, 4); "
+                         f"got {gt_t.shape}, {gt_p.shape}, {gt_q.shape}")
     dtype = jnp.result_type(gt_p, gt_q, jnp.float32)
 
     t0, t1 = gt_t[0], gt_t[-1]

@@ -43,6 +43,12 @@ def test_sample_into_buffer_dtype_and_errors():
         pj.sample_into(curves, jnp.zeros((5, 4, 3)), jnp.zeros((5, 3)))
     with pytest.raises(ValueError, match="by must"):
         pj.sample_into(curves, jnp.zeros((5, 4, 3)), by="space")
+    # sample: an array instead of curves, and a fractional count (silently rounded down)
+    with pytest.raises(TypeError, match="curves must be a PHQuintic"):
+        pj.sample(np.zeros((5, 3)), 5)
+    for n in (2.5, 0, True):
+        with pytest.raises(ValueError, match="n must be an integer >= 1"):
+            pj.sample(curves, n)
 
 
 @pytest.mark.parametrize(("chunk", "buffers"), [(4, 2), (7, 1), (50, 3)])

@@ -131,6 +131,11 @@ def test_bad_shapes_raise():
         interpolate_poses(np.zeros(3), np.zeros((3, 2)), np.zeros((3, 4)), np.zeros(2))
     with pytest.raises(ValueError):
         finite_difference_velocities(np.zeros(1), np.zeros((1, 3)), np.zeros((1, 4)))
+    # unsorted samples gave wrong values silently ([0, 0, 0] for a line through the queries)
+    t = np.linspace(0, 1, 5)
+    with pytest.raises(ValueError, match="times must be non-decreasing"):
+        interpolate_poses(t[::-1], np.stack([t[::-1]] * 3, -1), np.tile([1.0, 0, 0, 0], (5, 1)),
+                          [0.1, 0.3])
 
 
 def test_velocities_exact_for_quadratics_on_nonuniform_grid():

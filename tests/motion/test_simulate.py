@@ -104,6 +104,15 @@ def test_invalid_model_raises(bad):
         simulate_measurements(0, *_smooth_gt(), model=SensorModel(**bad))
 
 
+def test_mismatched_ground_truth_names_the_callers_shapes():
+    """The error named the padded shapes ((64,), (65, 3), ...) or came from NumPy's concatenate."""
+    t, p, q = _smooth_gt()
+    with pytest.raises(ValueError, match=rf"got \({t.size - 1},\), \({t.size}, 3\)"):
+        simulate_measurements(0, t[:-1], p, q)
+    with pytest.raises(ValueError, match=rf"\({t.size}, 3\)$"):
+        simulate_measurements(0, t, p, q[:, :3])
+
+
 # --------------------------------------------------------------------------- synthetic head motion
 
 
