@@ -30,28 +30,40 @@ def _window(name, kind, traj, max_seconds, max_windows):
 
 
 def load_devset(max_seconds: float = 30.0, max_windows: int = 1, root: Path | None = None):
-    """Load the development set (raises FileNotFoundError when ../shared/data is absent)."""
+    """Load the development set (raises FileNotFoundError when ../shared/data is absent).
+
+    Names are short (``fr1_xyz#0``, ``room1#0``); where two files would share one (a folder
+    laid out like ../shared/data with other recordings), those take their file's stem
+    instead, so that every window has its own name (the split is by sorted name)."""
     root = shared_data_dir() if root is None else root
     if root is None:
         raise FileNotFoundError("../shared/data not found (set PHJAX_SHARED_DATA)")
-    seqs = []
+    seqs, sources = [], []
+
+    def add(name, kind, traj, source):
+        windows = _window(name, kind, traj, max_seconds, max_windows)
+        seqs.extend(windows)
+        sources.extend([(name, source)] * len(windows))
+
     for f in sorted((root / "tum_rgbd_groundtruth").glob("*-groundtruth.txt")):
-        seqs += _window(f.name.split("-")[0], "camera", io.read_tum(f), max_seconds, max_windows)
+        add(f.name.split("-")[0], "camera", io.read_tum(f), f.stem)
     for f in sorted((root / "tum_vi_room_groundtruth").glob("*.csv")):
-        seqs += _window(f.stem.split("_")[0], "object", io.read_euroc(f), max_seconds, max_windows)
+        add(f.stem.split("_")[0], "object", io.read_euroc(f), f.stem)
     for f in sorted((root / "vr_corbillon_multiviewpoint360").glob("user*_quaternion.txt")):
-        seqs += _window("corbillon-" + f.stem.split("_")[0], "head", io.read_corbillon(f),
-                        max_seconds, max_windows)
+        add("corbillon-" + f.stem.split("_")[0], "head", io.read_corbillon(f), f.stem)
     seg = root / "vr_hachaj_head_gestures" / "segment_continuous.log"
     if seg.exists():
-        seqs += _window("hachaj-continuous", "head", io.read_hachaj(seg), max_seconds, max_windows)
+        add("hachaj-continuous", "head", io.read_hachaj(seg), seg.stem)
     cwi = sorted((root / "vr_cwi_6dof_navigation").glob("H*_nav.csv"))
     for f in cwi:
         parts = io.read_cwi(f)
         for pid in sorted(parts)[:2]:
-            seqs += _window(f"cwi-{f.stem.split('_')[0]}-{pid}", "head", parts[pid], max_seconds,
-                            max_windows)
-    return seqs
+            add(f"cwi-{f.stem.split('_')[0]}-{pid}", "head", parts[pid], f"{f.stem}-{pid}")
+    files_of = {}
+    for name, source in sources:
+        files_of.setdefault(name, set()).add(source)
+    return [((source + w[0][len(name):]) if len(files_of[name]) > 1 else w[0],) + w[1:]
+            for w, (name, source) in zip(seqs, sources)]
 
 
 def simulated_devset(seconds: float, quick: bool = False, rate: float = 30.0):

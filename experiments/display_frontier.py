@@ -93,15 +93,19 @@ def load_recordings(seconds: float, data: Path | None = None,
     from ``files`` (any :func:`phjax.io.read_trajectory` format; kind ``"file"``), else the
     development set under ``data`` (default ``../shared/data``)."""
     if files:
-        from phjax.io import read_trajectory
+        from phjax.io import read_trajectory_spec, split_trajectory_name
 
         out = []
         for f in files:
-            tr = read_trajectory(f)
+            tr = read_trajectory_spec(f)  # FILE or FILE#NAME, as on phjax's command line
+            path, name = split_trajectory_name(f)
             sel = tr.times < tr.times[0] + seconds
-            out.append((Path(f).stem, "file", tr.times[sel], tr.positions[sel],
-                        tr.quaternions[sel]))
-        return out
+            out.append((Path(path).stem + (f"#{name}" if name else ""), "file",
+                        tr.times[sel], tr.positions[sel], tr.quaternions[sel]))
+        # two files of one stem (a.txt, a.csv, or one name in two folders): the names given
+        stems = [o[0] for o in out]
+        return [(o[0] if stems.count(o[0]) == 1 else str(f),) + o[1:]
+                for o, f in zip(out, files)]
     return [s[:5] for s in load_devset(max_seconds=seconds, root=data)]
 
 
@@ -528,8 +532,14 @@ def main(argv=None):
         args.seconds, args.render_phase = saved["seconds"], saved.get("render_phase", 0.0)
     else:
         lookaheads = [L / 1e3 for L in args.lookaheads]
-        recs = simulate(load_recordings(args.seconds, args.data, args.recordings), args.seconds,
-                        args.quick and not args.recordings)
+        try:
+            seqs = load_recordings(args.seconds, args.data, args.recordings)
+        except (OSError, ValueError) as e:  # a missing or unreadable recording: one line
+            from phjax.cli._common import format_user_error
+
+            print(f"display_frontier.py: error: {format_user_error(e)}", file=sys.stderr)
+            raise SystemExit(2) from None
+        recs = simulate(seqs, args.seconds, args.quick and not args.recordings)
         if len(recs) < 2:
             ap.error(f"need at least 2 recordings of {args.seconds:g} s (got {len(recs)})")
         data = prepare(recs, args.seconds, lookaheads, args.render_phase)

@@ -187,7 +187,8 @@ def live_tracker_config(depth_free: bool = False, base: TrackerConfig | None = N
                           rot_meas_noise=max(float(k.rot_meas_noise), MONOCULAR_NOISE[1]),
                           init_pos_vel_std=k.init_pos_vel_std,
                           init_pos_acc_std=k.init_pos_acc_std,
-                          init_rot_vel_std=k.init_rot_vel_std, gate_nis=k.gate_nis)
+                          init_rot_vel_std=k.init_rot_vel_std, gate_nis=k.gate_nis,
+                          gate_reset=k.gate_reset)
     return eqx.tree_at(lambda c: c.kalman, base, kalman)
 
 

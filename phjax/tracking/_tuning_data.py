@@ -119,7 +119,7 @@ def prepare_recordings(
             t, p, q = t[keep], p[keep], q[keep]
         frames = simulate_measurements(seed + i, t, p, q, sensor)
         mt, mp, mq = (np.asarray(x, np.float64) for x in frames)
-        ok = np.isfinite(mq).all(-1)
+        ok = np.isfinite(mq).all(-1) | np.isfinite(mp).all(-1)  # a frame with either part
         if not ok.any():
             raise ValueError(f"recording {i}: the simulated sensor produced no valid measurement")
         start = mt[ok][0] + 1.0 / float(sensor.rate)
@@ -154,8 +154,9 @@ def _as_measured(i, rec):
     if m < 4 or not np.all(np.isfinite(r)) or np.any(np.diff(r) <= 0):
         raise ValueError(f"recording {i}: render times must be finite, strictly increasing and "
                          f"at least 4 (for the jerk terms); got {m}")
-    if not (np.isfinite(q).all(-1) & (np.linalg.norm(q, axis=-1) > 0)).any():
-        raise ValueError(f"recording {i}: no valid orientation measurement")
+    if not ((np.isfinite(q).all(-1) & (np.linalg.norm(q, axis=-1) > 0)).any()
+            or np.isfinite(p).all(-1).any()):
+        raise ValueError(f"recording {i}: no valid measurement (position or orientation)")
     r = snap_to_frames(np.asarray(rec[0]), r)
     first = np.concatenate([[True], np.diff(t) > 0])
     return t[first], p[first], q[first], r, gp, gq
@@ -218,9 +219,9 @@ def measured_recording(
                           for x in (fit.rotation, fit.translation, fit.quaternion))
         p = p @ rot.T + trans
         q = np.asarray(quat_mul(qr, q), np.float64)
-    ok = np.isfinite(q).all(-1)
+    ok = np.isfinite(q).all(-1) | np.isfinite(p).all(-1)  # a frame with either part
     if not ok.any():
-        raise ValueError("measurements: no valid orientation")
+        raise ValueError("measurements: no valid measurement (position or orientation)")
     frame = float(np.median(np.diff(t))) if t.size > 1 else 0.0
     start = max(t[ok][0] + frame, gt_t[0])
     r = np.arange(start, min(t[-1], gt_t[-1]), 1.0 / render_rate)
@@ -290,13 +291,19 @@ def tuning_data(
         origin = gp[np.argmax(known)] if known.any() else (
             mp[np.argmax(np.isfinite(mp).all(-1))] if has_pos else np.zeros(3))
         mp, gp = mp - origin, gp - origin
+        has_rot = np.isfinite(mq).all(-1).any()
         if not has_pos:  # orientation only: track a fixed point (as track does)
             ok = np.isfinite(mq).all(-1)
             mp = np.where(ok[:, None], 0.0, np.nan) * np.ones((1, 3))
+        if not has_rot:  # position only: track a fixed orientation (as track does)
+            ok = np.isfinite(mp).all(-1)
+            mq = np.where(ok[:, None], np.array([1.0, 0, 0, 0]), np.nan)
         rp, rq = (np.asarray(x, np.float64)
                   for x in kalman_extrapolation(mt, mp, mq, r, config=reference_config))
         if not has_pos:
             rp = np.full_like(rp, np.nan)
+        if not has_rot:
+            rq = np.full_like(rq, np.nan)
         # on the render samples padded to their size class (masked out): one compiled
         # stream_metrics per class, not per recording length
         rr, mask, *rows = _pad_render(r, size_class(r.size, MIN_RENDER), rp, rq, gp, gq)

@@ -118,9 +118,13 @@ class KalmanConfig(eqx.Module):
         init_rot_vel_std: initial angular-velocity std, rad/s (default 1.0).
         gate_nis: if set, a position or orientation measurement whose normalised innovation
             squared (chi-square with 3 dof under the model) exceeds it is rejected, e.g. 16.27
-            (p = 0.001). Static; default ``None`` (no gating). A filter that has diverged
-            rejects everything until its covariance has grown enough; use
-            ``KalmanState.last_update`` to detect long coasting and re-initialise.
+            (p = 0.001). Static; default ``None`` (no gating).
+        gate_reset: with a gate, a part (position or orientation) whose valid measurements
+            have all been rejected for longer than this, s, is re-initialised from the next
+            valid one (``KalmanState.part_updates``): a filter that diverged (e.g. initialised
+            from one stray first pose, then coasting on a wrong velocity) or a real jump in
+            the input (a tracker re-centred or re-acquiring the face elsewhere) is taken up
+            again instead of being rejected for ever. Static; default 0.25.
     """
 
     model: str = eqx.field(static=True, default="cv")
@@ -132,12 +136,15 @@ class KalmanConfig(eqx.Module):
     init_pos_acc_std: float = 3.0
     init_rot_vel_std: float = 1.0
     gate_nis: float | None = eqx.field(static=True, default=None)
+    gate_reset: float = eqx.field(static=True, default=0.25)
 
     def __post_init__(self):
         if self.model not in _ORDER:
             raise ValueError(f"KalmanConfig.model must be 'cv' or 'ca', got {self.model!r}")
         if self.gate_nis is not None and not float(self.gate_nis) > 0:
             raise ValueError(f"KalmanConfig.gate_nis must be positive or None, got {self.gate_nis}")
+        if not float(self.gate_reset) >= 0:
+            raise ValueError(f"KalmanConfig.gate_reset must be >= 0 s, got {self.gate_reset}")
         if self.pos_process_noise is None:
             self.pos_process_noise = _DEFAULT_POS_Q[self.model]
 
@@ -160,6 +167,8 @@ class KalmanState(eqx.Module):
             (``q_true = exp(dtheta) q``, ``w_true = w + dw``).
         initialized: whether the state holds an estimate.
         last_update: time of the last accepted measurement (creation time while uninitialised).
+        part_updates: (2,) the same per part: position, orientation (the gate's reset,
+            :attr:`KalmanConfig.gate_reset`).
     """
 
     t: Float[Array, ""]
@@ -170,6 +179,7 @@ class KalmanState(eqx.Module):
     Pr: Float[Array, "6 6"]
     initialized: Bool[Array, ""]
     last_update: Float[Array, ""]
+    part_updates: Float[Array, "2"]
 
 
 class KalmanInfo(eqx.Module):
@@ -461,6 +471,7 @@ def kalman_init(
         Pr=jnp.diag(var_r),
         initialized=valid,
         last_update=t,
+        part_updates=jnp.stack([t, t]),
     )
 
 
@@ -492,7 +503,8 @@ def kalman_predict(
     t_new, dt = _clamped_time(state, t)
     x, p = _linear_predict(state.x, state.P, *_pos_model(config, dt))
     q, pr = _rot_predict(state.q, state.w, state.Pr, *_rot_model(config, state.w, dt), dt)
-    pred = KalmanState(t_new, x, p, q, state.w, pr, state.initialized, state.last_update)
+    pred = KalmanState(t_new, x, p, q, state.w, pr, state.initialized, state.last_update,
+                       state.part_updates)
     moved = eqx.tree_at(lambda s: s.t, state, t_new)
     return _select(state.initialized, pred, moved)
 
@@ -591,6 +603,16 @@ def kalman_update(
     q_upd, w_upd, pr_upd, y_rot, s_rot, nis_rot, _ = _rot_update(
         state.q, state.w, state.Pr, q_meas, rot_valid, r_rot)
     rot_ok = rot_valid if gate is None else rot_valid & (nis_rot <= gate)
+    if gate is not None:  # a part rejected for longer than gate_reset starts again
+        stale = state.t - state.part_updates > config.gate_reset
+        pos_reset, rot_reset = pos_valid & ~pos_ok & stale[0], rot_valid & ~rot_ok & stale[1]
+        fresh = kalman_init(config, state.t, p_meas, q_meas)  # the parts' initial moments
+        x_upd = jnp.where(pos_reset, fresh.x, x_upd)
+        p_upd = jnp.where(pos_reset, fresh.P, p_upd)
+        q_upd = jnp.where(rot_reset, fresh.q, q_upd)
+        w_upd = jnp.where(rot_reset, fresh.w, w_upd)
+        pr_upd = jnp.where(rot_reset, fresh.Pr, pr_upd)
+        pos_ok, rot_ok = pos_ok | pos_reset, rot_ok | rot_reset
 
     updated = KalmanState(
         t=state.t,
@@ -601,6 +623,7 @@ def kalman_update(
         Pr=jnp.where(rot_ok, pr_upd, state.Pr),
         initialized=state.initialized,
         last_update=jnp.where(pos_ok | rot_ok, state.t, state.last_update),
+        part_updates=jnp.where(jnp.stack([pos_ok, rot_ok]), state.t, state.part_updates),
     )
     return _finish(config, state, state.t, updated, p_meas, q_meas, (pos_valid, rot_valid),
                    (pos_ok, rot_ok), (y_pos, y_rot), (s_pos, s_rot), (r_pos, r_rot), (nis_pos, nis_rot))
@@ -611,7 +634,8 @@ def _finish(config, state, t, updated, p_meas, q_meas, valid, ok, innovation, co
     from the measurement at ``t``; and the :class:`KalmanInfo` (pairs: position, orientation)."""
     init = kalman_init(config, t, p_meas, q_meas)
     init_time = jnp.where(init.initialized, t, state.last_update)
-    init = eqx.tree_at(lambda s: s.last_update, init, init_time)
+    init = eqx.tree_at(lambda s: (s.last_update, s.part_updates), init,
+                       (init_time, jnp.stack([init_time, init_time])))
     was_init = state.initialized
     new_state = _select(was_init, updated, init)
     init_now = ~was_init & init.initialized
@@ -752,7 +776,8 @@ def rts_smooth(config: KalmanConfig, filtered_states: KalmanState) -> KalmanStat
         pr_s = cur.Pr + gain_r @ (p_next - pr_pred) @ gain_r.T
         q_s, pr_s = _inject(delta[:3], cur.q, pr_s)
         smoothed = KalmanState(
-            cur.t, x_s, p_s, q_s, cur.w + delta[3:], pr_s, cur.initialized, cur.last_update
+            cur.t, x_s, p_s, q_s, cur.w + delta[3:], pr_s, cur.initialized, cur.last_update,
+            cur.part_updates,
         )
         out = _select(cur.initialized & nxt.initialized, smoothed, cur)
         return out, out

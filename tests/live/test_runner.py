@@ -702,3 +702,22 @@ def test_a_pose_file_with_one_pose_is_refused(tmp_path):
     f.write_text("1 0 0 0 0 0 0 1\n")
     with pytest.raises(SourceError, match="1 pose\\(s\\); a replay needs at least 2"):
         open_source(f"poses:{f}")
+
+
+def test_a_stray_first_pose_does_not_send_the_live_stream_away():
+    """The live config gates outliers; a first pose 20 cm / 10 deg off a still head made the
+    filter coast away on a wrong velocity and reject every later frame (the sent pose was
+    16 m away after 8 s). The gate's reset takes the head up again within gate_reset."""
+    t = np.arange(120) / 30
+    p = np.tile([0.0, 0.0, 0.6], (120, 1))
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (120, 1))
+    p[0] = [0.2, 0.0, 0.65]
+    from phjax._np_quat import np_from_rotvec
+
+    q[0] = np_from_rotvec(np.radians([0.0, 10.0, 0.0]))
+    out = []
+    lt = LiveTracker(PoseReplaySource(t, p, q), [], rate=120, clock=VirtualClock(),
+                     callback=lambda s: out.append((s.t, s.position.copy())))
+    lt.run()
+    late = np.array([x for ts, x in out if ts > 1.0])
+    assert late.size and np.abs(late - [0.0, 0.0, 0.6]).max() < 0.01

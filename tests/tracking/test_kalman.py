@@ -734,6 +734,39 @@ def test_gating_rejects_outliers():
     assert bool(info.pos_used) and bool(info.rot_used)
 
 
+@pytest.mark.parametrize("case", ["stray first pose", "jump in position"])
+def test_gate_reset_takes_up_a_part_rejected_for_longer_than_gate_reset(case):
+    """A gate alone never recovered: initialised from one stray first pose (20 cm off), the
+    filter accepted one measurement with a huge gain on the velocity, coasted away on it and
+    rejected everything after (the live path sent 16 m away from a still head). A part whose
+    valid measurements are all rejected for ``gate_reset`` is re-initialised from the next
+    one, the other part untouched; a real jump is taken up after ``gate_reset`` instead of
+    never (or once the covariance has grown enough)."""
+    cfg = KalmanConfig(gate_nis=16.27, gate_reset=0.25)
+    n = 90  # 3 s at 30 Hz of a still head at (0, 0, 0.6), identity orientation
+    t = np.arange(n) / 30
+    p = np.tile([0.0, 0.0, 0.6], (n, 1))
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    if case == "stray first pose":
+        p[0] = [0.2, 0.0, 0.6]
+    else:
+        p[45:] += [0.3, 0.0, 0.0]
+    states, infos = kalman_filter(cfg, t, p, q)
+    x = np.asarray(states.x)
+    np.testing.assert_allclose(x[-1, :3], p[-1], atol=2e-3)  # back on the head, at rest
+    assert np.abs(x[-1, 3:6]).max() < 0.02
+    # the orientation was never rejected nor reset: its updates are every frame's
+    np.testing.assert_array_equal(np.asarray(states.part_updates)[:, 1], t)
+    rejected = ~np.asarray(infos.pos_used) & np.asarray(infos.pos_valid)
+    runs = np.diff(np.flatnonzero(np.diff(np.concatenate([[0], rejected, [0]]))))[::2]
+    assert runs.max() <= 0.25 * 30 + 1, runs  # no run of rejections longer than gate_reset
+    # without the reset (a gate_reset beyond the recording) the stray case never recovers
+    if case == "stray first pose":
+        never = KalmanConfig(gate_nis=16.27, gate_reset=1e9)
+        far = np.asarray(kalman_filter(never, t, p, q)[0].x)[-1, :3]
+        assert np.linalg.norm(far - p[-1]) > 0.5
+
+
 # ---------------------------------------------------------------------------------------------
 # JAX behaviour: scan vs loop, compile once, gradients, float32
 

@@ -529,6 +529,17 @@ def test_tuning_data_orientation_only_and_errors():
     np.testing.assert_array_equal(np.asarray(d.positions[0][:ok.size][ok]), 0.0)
     ref = np.asarray(d.reference[0])
     assert np.isnan(ref[[0, 2]]).all() and np.isfinite(ref[[1, 3]]).all()
+    # position only (phjax tune refused it: "the simulated sensor produced no valid
+    # measurement"): a fixed orientation where the position is measured; no rotation reference
+    full = list(_simulated(pj.synthetic_head_motion(duration=1.0, rate=120.0, seed=3), 0))
+    full[2] = np.full_like(full[2], np.nan)
+    full[5] = np.full_like(full[5], np.nan)
+    d = tuning.tuning_data([tuple(full)])
+    ok = np.isfinite(full[1]).all(-1)
+    np.testing.assert_array_equal(np.asarray(d.quaternions[0][:ok.size][ok]),
+                                  np.tile([1.0, 0, 0, 0], (ok.sum(), 1)))
+    ref = np.asarray(d.reference[0])
+    assert np.isnan(ref[[1, 3]]).all() and np.isfinite(ref[[0, 2]]).all()
     cases = [
         ([], "at least one recording"),
         ([tuple(rec[:5])], "expected (times"),
@@ -536,7 +547,7 @@ def test_tuning_data_orientation_only_and_errors():
         ([(rec[0][::-1], *rec[1:])], "non-decreasing"),
         ([(*rec[:3], rec[3][:3], rec[4][:3], rec[5][:3])], "at least 4"),
         ([(*rec[:3], rec[3][::-1], *rec[4:])], "strictly increasing"),
-        ([(rec[0], rec[1], rec[2] * np.nan, *rec[3:])], "no valid orientation"),
+        ([(rec[0], rec[1], rec[2] * np.nan, *rec[3:])], "no valid measurement"),
     ]
     for recs, message in cases:
         with pytest.raises(ValueError, match=message.replace("(", r"\(")):
@@ -572,7 +583,7 @@ def test_measured_recording_aligns_a_rigidly_moved_stream():
     for kwargs, message in (
             (dict(measurements=(t[k] + 10.0, mp, mq)), "overlap for too short"),
             (dict(measurements=(t[k], mp * np.nan, mq), align=True), "rigid transform"),
-            (dict(measurements=(t[k], mp, mq * np.nan)), "no valid orientation")):
+            (dict(measurements=(t[k], mp * np.nan, mq * np.nan)), "no valid measurement")):
         with pytest.raises(ValueError, match=message):
             tuning.measured_recording((t, p, q), **kwargs)
 
