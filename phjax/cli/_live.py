@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import math
 import signal
 import sys
@@ -10,20 +11,82 @@ import threading
 from ._common import check_lookahead
 
 
+class _Interrupted(BaseException):  # not caught by a library's "except Exception"
+    """A stop signal while ``phjax live`` is still starting (its name as the message)."""
+
+
+def _in_gc_callback(frame) -> bool:
+    """Whether ``frame`` runs inside a garbage-collector callback (XLA registers one)."""
+    codes = {getattr(cb, "__code__", None) for cb in gc.callbacks}
+    while frame is not None:
+        if frame.f_code in codes:
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _abandon(lt, source) -> None:
+    """Release what a start that did not finish holds: the tracker's threads and worker, or
+    the opened source (its socket, its worker process)."""
+    try:
+        if lt is not None:
+            lt.stop(timeout=2.0)
+        elif source is not None:
+            source.close()
+    except Exception:  # noqa: BLE001 - best effort on the way out; the first error is reported
+        pass
+
+
 def cmd_live(args) -> int:
     ms = args.lookahead
     check_lookahead(ms)
-    import equinox as eqx
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-    jax.config.update("jax_cpu_enable_async_dispatch", False)
-    from ..live import LiveTracker, OutputError, SourceError, live_tracker_config, open_source
-    from ..live._udp import UdpSource
-
     tty = sys.stderr.isatty()
-    source = None
+    source = lt = None
+    running = False
+    center_asked = False
+    stop_asked = None
+    previous = {}
+
+    def on_stop(signum, frame):
+        nonlocal stop_asked
+        if not running:  # still starting (frames rendering, compiling): abandon the start
+            stop_asked = signal.Signals(signum).name  # checked again once started
+            if not _in_gc_callback(frame):  # raised there, Python would print and drop it
+                raise _Interrupted(stop_asked)
+            return
+        lt.request_stop()
+        if signum == signal.SIGINT:  # a second Ctrl-C interrupts the wait at once
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    def on_usr1(signum, frame):
+        nonlocal center_asked
+        if running:
+            lt.center()
+        else:  # re-centre as soon as the run starts
+            center_asked = True
+
+    if threading.current_thread() is threading.main_thread():
+        # installed before the start, which can take a minute (a signal then ended in a
+        # traceback, or killed the process for SIGUSR1); SIGINT even where it was inherited as
+        # ignored (a job started with '&' from a script), so that 'kill -INT' still stops it
+        previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, on_stop)
+        previous[signal.SIGINT] = signal.signal(signal.SIGINT, on_stop)
+        if hasattr(signal, "SIGUSR1"):
+            previous[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, on_usr1)
+
+    def restore():
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
     try:
+        import equinox as eqx
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+        jax.config.update("jax_cpu_enable_async_dispatch", False)
+        from ..live import LiveTracker, live_tracker_config, open_source
+        from ..live._udp import UdpSource
+
         source = open_source(args.source, model_dir=args.model_dir, ipd=args.ipd, fov=args.fov,
                              monocular=args.monocular, head_size=args.head_size)
         if isinstance(source, UdpSource):
@@ -37,34 +100,25 @@ def cmd_live(args) -> int:
                          log=args.log, center=args.center, realtime=args.realtime,
                          config=config)
         lt.start()
-    except (SourceError, OutputError, ValueError, FileNotFoundError) as e:
-        if isinstance(source, UdpSource):
-            source.close()
+        if stop_asked:
+            raise _Interrupted(stop_asked)
+        running = True
+    except _Interrupted as e:
+        _abandon(lt, source)
+        restore()
+        print(f"phjax live: stopped by {e} during the start; nothing was sent", file=sys.stderr)
+        return 0
+    except (ValueError, FileNotFoundError) as e:  # SourceError and OutputError among them
+        _abandon(lt, source)
+        restore()
         print(f"phjax live: error: {e}", file=sys.stderr)
         return 2
+    if center_asked:
+        lt.center()
     outs = ", ".join(o.url for o in lt.outputs) or "none"
     print(f"phjax live: {lt.source.name} -> {outs} at {args.rate:g} Hz"
           + (f", lookahead {ms:g} ms" if ms else "")
           + (f", log {args.log}" if args.log else ""), file=sys.stderr)
-    previous = {}
-    if threading.current_thread() is threading.main_thread():
-        def on_term(signum, frame):
-            lt.request_stop()
-
-        def on_int(signum, frame):
-            # the first Ctrl-C ends the run cleanly; a second one interrupts the wait at once
-            lt.request_stop()
-            signal.signal(signal.SIGINT, signal.default_int_handler)
-
-        def on_usr1(signum, frame):
-            lt.center()
-
-        previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, on_term)
-        # installed even where SIGINT was inherited as ignored (a job started with '&' from a
-        # script): then Python raises no KeyboardInterrupt and 'kill -INT' would do nothing
-        previous[signal.SIGINT] = signal.signal(signal.SIGINT, on_int)
-        if hasattr(signal, "SIGUSR1"):
-            previous[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, on_usr1)
 
     def status(line: str) -> None:
         if args.quiet:
@@ -80,8 +134,7 @@ def cmd_live(args) -> int:
         print(f"\nphjax live: error: {e}", file=sys.stderr)
         return 1
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        restore()
     if tty and not args.quiet:
         print(file=sys.stderr)
     s = lt.stats()

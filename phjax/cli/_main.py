@@ -231,6 +231,9 @@ def main(argv: list[str] | None = None) -> int:
         except (ValueError, OSError) as err:
             print(f"phjax {args.command}: error: {format_user_error(err)}", file=sys.stderr)
             return 2
+        except KeyboardInterrupt:  # Ctrl-C: one line, the shell's status for SIGINT
+            print(f"\nphjax {args.command}: interrupted", file=sys.stderr)
+            return 130
         except MemoryError as err:  # an input or option larger than this machine's memory
             print(f"phjax {args.command}: error: out of memory ({format_user_error(err)}); "
                   "lower --rate or shorten the input", file=sys.stderr)

@@ -194,3 +194,26 @@ def test_help_text():
     for word in ("opentrack://", "osc://", "--rate", "--duration", "--log", "--center",
                  "synthetic", "webcam", "realsense", "poses:FILE"):
         assert word in r.stdout, word
+
+
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_a_stop_signal_during_the_start_ends_in_one_line(tmp_path, capsys, monkeypatch, sig):
+    """The start (rendering frames, compiling) can take a minute; a stop signal then printed
+    a KeyboardInterrupt traceback (SIGINT), or killed the process without a word (SIGTERM:
+    status -15; SIGUSR1: -10). Now: one line, status 0, the handlers put back."""
+    import os
+
+    import phjax.live as live
+
+    def slow_open(*args, **kwargs):  # the signal arrives while the source opens
+        os.kill(os.getpid(), getattr(signal, sig))
+        time.sleep(1.0)
+        raise AssertionError("the signal did not interrupt the start")
+
+    monkeypatch.setattr(live, "open_source", slow_open)
+    before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    rc = main(["live", "poses:whatever.txt", "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert err.strip() == f"phjax live: stopped by {sig} during the start; nothing was sent"
+    assert {s: signal.getsignal(s) for s in before} == before
