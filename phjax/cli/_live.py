@@ -8,7 +8,7 @@ import signal
 import sys
 import threading
 
-from ._common import check_lookahead
+from ._common import check_lookahead, positive_float
 
 
 class _Interrupted(BaseException):  # not caught by a library's "except Exception"
@@ -141,6 +141,10 @@ def cmd_live(args) -> int:
     print(f"phjax live: sent {s['sent']} poses in {s['elapsed']:.2f} s "
           f"({s['sent'] / max(s['elapsed'], 1e-9):.1f} Hz), {s['frames']} camera frames",
           file=sys.stderr)
+    for url, n in s["send_errors"].items():
+        if n:
+            print(f"phjax live: {url}: {n} of {s['sent']} packets could not be sent (nothing "
+                  "listening on that port, or the network refused them)", file=sys.stderr)
     if isinstance(lt.source, UdpSource):
         u = lt.source.stats()
         frame = (f"sender's frame interval {1e3 * u['frame_interval']:.1f} ms, "
@@ -200,7 +204,7 @@ def add_commands(sub) -> None:
     p.add_argument("--model-dir", default=None,
                    help="model cache: YuNet, the head-pose network (default $PHJAX_MODEL_DIR "
                    "or ~/.cache/phjax/models)")
-    p.add_argument("--status-interval", type=float, default=1.0,
+    p.add_argument("--status-interval", type=positive_float, default=1.0,
                    help="seconds between status lines (default 1)")
     p.add_argument("--realtime", action="store_true",
                    help="run the render loop with real-time scheduling (SCHED_FIFO; Linux, "

@@ -317,7 +317,7 @@ class LiveTracker:
             if log is not None:
                 self._log = TumLog(log)
         except BaseException:
-            self._close_outputs()
+            self._close_outputs(raise_first=False)
             raise
         self.base_config = config if config is not None else live_tracker_config(
             self.source.depth_free)
@@ -370,6 +370,8 @@ class LiveTracker:
         compiles."""
         if self._started:
             raise RuntimeError("a LiveTracker can be started once")
+        if self._closed:  # stop() before start() closed the outputs (and the source)
+            raise RuntimeError("this LiveTracker was stopped before it started; make a new one")
         self._started = True
         try:
             if isinstance(self.source, WorkerSource):
@@ -431,29 +433,42 @@ class LiveTracker:
         if self._closed:
             return
         self._closed = True
-        self._close_outputs()
+        # everything is closed and restored even when a close fails (a full disk under the
+        # log: the source's socket or worker stayed open); the first error is raised after
+        errors = self._close_outputs(raise_first=False)
         try:
             if self.source is not None:
                 self.source.close()
-        finally:
-            if getattr(self, "_old_switch", None) is not None:
-                sys.setswitchinterval(self._old_switch)
-                self._old_switch = None
-            if self._gc_frozen:
-                gc.unfreeze()
-                self._gc_frozen = False
-            for q in self._queues:
-                try:
-                    q.put_nowait(None)
-                except queue.Full:
-                    pass
-            self._finished.set()
+        except Exception as e:  # noqa: BLE001 - raised below, after the rest is restored
+            errors.append(e)
+        if getattr(self, "_old_switch", None) is not None:
+            sys.setswitchinterval(self._old_switch)
+            self._old_switch = None
+        if self._gc_frozen:
+            gc.unfreeze()
+            self._gc_frozen = False
+        for q in self._queues:
+            try:
+                q.put_nowait(None)
+            except queue.Full:
+                pass
+        self._finished.set()
+        if errors:
+            raise errors[0]
 
-    def _close_outputs(self) -> None:
-        for out in self._outputs:
-            out.close()
-        if self._log is not None:
-            self._log.close()
+    def _close_outputs(self, raise_first: bool = True) -> list[Exception]:
+        """Close every output and the log, each even if another failed; the errors (the first
+        one raised when ``raise_first``)."""
+        errors = []
+        for close in [o.close for o in self._outputs] + (
+                [self._log.close] if self._log is not None else []):
+            try:
+                close()
+            except Exception as e:  # noqa: BLE001 - collected, see above
+                errors.append(e)
+        if errors and raise_first:
+            raise errors[0]
+        return errors
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait until the run ends by itself (duration, end of source); True if it ended."""
@@ -665,7 +680,8 @@ class LiveTracker:
         ``age_p50`` / ``_p99`` (``Sample.age``), ``applied_age_p50`` / ``_p99`` (capture to
         stream update), ``sent_age_p50`` / ``_p99`` (capture to send), ``front_end_p50`` (the
         front-end's time per frame; NaN if the source does not say), ``horizon`` and
-        ``lookahead`` (s, of the config in use).
+        ``lookahead`` (s, of the config in use), ``send_errors`` (per output URL: packets the
+        network refused, e.g. nothing listening on that port).
         """
         iv = self.intervals.values()
         ages = self.ages.values()
@@ -702,6 +718,7 @@ class LiveTracker:
             "front_end_p50": _percentile(work, 50),
             "horizon": float(self._config_used.horizon),
             "lookahead": float(self._config_used.lookahead),
+            "send_errors": {o.url: int(getattr(o, "send_errors", 0)) for o in self._outputs},
         }
 
     def status_line(self) -> str:
@@ -726,8 +743,10 @@ class LiveTracker:
         reasons = ([f"late {s['dropped']}"] if s["dropped"] else []) + [
             f"{k} {v}" for k, v in sorted(s["no_pose"].items())]
         lost = f"lost {s['lost']}" + (f" ({', '.join(reasons)})" if reasons else "")
+        failed = sum(s["send_errors"].values())
         return (f"t {s['elapsed']:6.1f} s | in {fps:5.1f} fps, {lost} | out {hz:6.1f} Hz, "
-                f"p99 {_ms(s['interval_p99'], 1)}, missed {s['missed_deadlines']} | "
+                + (f"failed {failed}, " if failed else "")
+                + f"p99 {_ms(s['interval_p99'], 1)}, missed {s['missed_deadlines']} | "
                 f"age {_ms(s['applied_age_p50'])}, sent {_ms(s['sent_age_p50'])} | "
                 f"lookahead {1e3 * s['lookahead']:.0f} ms")
 

@@ -171,7 +171,7 @@ class UdpSource(Source):
         usage = "use udp://[HOST]:PORT, e.g. udp://127.0.0.1:5005"
         parsed = urllib.parse.urlsplit(spec)
         port = url_port(parsed, spec, SourceError)
-        if port is None or port == 0:
+        if port is None:
             raise SourceError(f"{spec}: missing port; {usage}")
         if parsed.path not in ("", "/"):
             raise SourceError(f"{spec}: unexpected path {parsed.path!r}; {usage}")

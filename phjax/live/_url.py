@@ -11,9 +11,12 @@ def url_port(parsed: urllib.parse.SplitResult, url: str, error: type[Exception])
     """The port of a split ``url`` (``None`` when it names none); ``error`` with one line when it
     is not an integer in 1-65535."""
     try:
-        return parsed.port
-    except ValueError:
+        port = parsed.port
+    except ValueError:  # not an integer, or above 65535
         raise error(f"{url}: bad port (expected an integer in 1-65535)") from None
+    if port == 0:
+        raise error(f"{url}: port 0 out of range 1-65535")
+    return port
 
 
 def url_options(parsed: urllib.parse.SplitResult, url: str, allowed: tuple[str, ...],

@@ -217,3 +217,26 @@ def test_a_stop_signal_during_the_start_ends_in_one_line(tmp_path, capsys, monke
     assert rc == 0, err
     assert err.strip() == f"phjax live: stopped by {sig} during the start; nothing was sent"
     assert {s: signal.getsignal(s) for s in before} == before
+
+
+def test_send_failures_are_reported_and_the_status_interval_is_checked(tmp_path, capsys):
+    """Nothing listening on the output port: about half the packets were refused and the run
+    said nothing (a mistyped port looked like a working one); --status-interval 0 printed a
+    line every 0.1 s and nan none."""
+    src = tmp_path / "p.txt"
+    write_tum(src, Trajectory(np.arange(60) / 30, np.zeros((60, 3)),
+                              np.tile([1.0, 0, 0, 0], (60, 1))))
+    import socket
+
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()  # a port nobody listens on
+    rc = main(["live", f"poses:{src}", "-o", f"opentrack://127.0.0.1:{port}", "--duration",
+               "1", "--quiet", "--rate", "60"])
+    err = capsys.readouterr().err
+    assert rc == 0
+    assert f"opentrack://127.0.0.1:{port}: " in err and "packets could not be sent" in err
+    for bad in ("0", "-1", "nan"):
+        assert main(["live", f"poses:{src}", "--status-interval", bad]) == 2
+        assert "argument --status-interval" in capsys.readouterr().err

@@ -721,3 +721,30 @@ def test_a_stray_first_pose_does_not_send_the_live_stream_away():
     lt.run()
     late = np.array([x for ts, x in out if ts > 1.0])
     assert late.size and np.abs(late - [0.0, 0.0, 0.6]).max() < 0.01
+
+
+def test_a_failing_log_still_closes_the_source_and_stop_before_start_is_final(tmp_path):
+    """A log on a full disk made stop() raise before the source was closed (its UDP socket
+    stayed bound); stop() before start() left start() running nothing on a re-bound socket."""
+    import os
+    import socket
+
+    if not os.path.exists("/dev/full"):
+        pytest.skip("no /dev/full")
+    from phjax.live._udp import UdpSource
+
+    lt = LiveTracker(UdpSource("127.0.0.1", 0, report=lambda line: None), [], rate=60,
+                     duration=1.0, log="/dev/full")
+    lt.start()
+    port = lt.source.port
+    lt.wait(5)
+    with pytest.raises(OSError, match="No space left"):
+        lt.stop()
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", port))  # free again
+    s.close()
+    early = LiveTracker(PoseReplaySource([0.0, 0.1], np.zeros((2, 3)),
+                                         np.tile([1.0, 0, 0, 0], (2, 1))), [])
+    early.stop()
+    with pytest.raises(RuntimeError, match="stopped before it started"):
+        early.start()

@@ -93,7 +93,7 @@ def test_udp_spec(spec, host, port, depth_free):
 
 @pytest.mark.parametrize("spec, message", [
     ("udp://127.0.0.1", "missing port"),
-    ("udp://127.0.0.1:0", "missing port"),
+    ("udp://127.0.0.1:0", "port 0 out of range 1-65535"),
     ("udp://127.0.0.1:99999", "bad port"),
     ("udp://127.0.0.1:5005/x", "unexpected path"),
     ("udp://127.0.0.1:5005?rate=3", "unknown option"),
