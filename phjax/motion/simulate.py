@@ -127,8 +127,16 @@ def simulate_measurements(
         offs = np.asarray(jax.random.normal(k_jit, (mb,)), dtype=np.float64)[:m] * jitter
         sample_t = np.clip(sample_t + np.clip(offs, -0.45, 0.45) * period, t0, t1)
 
-    gt = pad_samples(gt_t.astype(dtype), gt_p.astype(dtype), gt_q.astype(dtype),
-                     sample_t.astype(dtype))
+    # the interpolation relative to the first ground-truth time (epoch times would be rounded
+    # to minutes in float32); the returned times must resolve the sampling in ``dtype``
+    last = max(abs(t0), abs(t1)) + abs(float(model.latency))
+    if np.spacing(np.asarray(last, dtype)) > 1e-2 * period:
+        raise ValueError(
+            f"times up to {last:.6g} s cannot be returned in {np.dtype(dtype).name} to a "
+            f"hundredth of the camera period; pass times relative to the first (t - t[0]) "
+            "or enable jax_enable_x64")
+    gt = pad_samples((gt_t - t0).astype(dtype), gt_p.astype(dtype), gt_q.astype(dtype),
+                     (sample_t - t0).astype(dtype))
     p_meas, q_meas = _measure(*gt, k_p, k_r, k_drop, *(jnp.asarray(float(x), dtype) for x in (
         model.sigma_p, model.sigma_r, model.dropout)))
     times = jax.device_put(np.asarray(sample_t + float(model.latency), dtype))

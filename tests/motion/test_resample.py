@@ -208,3 +208,15 @@ def test_snap_to_frames_tolerance_is_capped_and_empty_frames_pass_through():
     np.testing.assert_array_equal(np.flatnonzero(moved) % 4, 0)
     np.testing.assert_array_equal(snapped[::4], frames32[1:26].astype(np.float64))
     np.testing.assert_array_equal(snap_to_frames(np.zeros(0), [1.0, 2.0]), [1.0, 2.0])
+
+
+def test_epoch_times_interpolate_as_relative_ones():
+    """Interpolation runs relative to the first sample time: with Unix times (1.7e9 s) the
+    float32 program rounded every time to 128 s (metres off on a TUM recording)."""
+    t = np.linspace(0, 2, 61)
+    p = np.stack([np.sin(t), np.cos(t), t], -1)
+    q = np.tile([1.0, 0, 0, 0], (61, 1))
+    r = np.linspace(0.1, 1.9, 37)
+    rel = np.asarray(interpolate_poses(t, p, q, r)[0])
+    epoch = np.asarray(interpolate_poses(t + 1.7e9, p, q, r + 1.7e9)[0])
+    np.testing.assert_allclose(epoch, rel, atol=1e-5)

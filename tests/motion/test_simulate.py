@@ -259,3 +259,15 @@ def _rotvec_quat(v):
     """``wxyz`` quaternion of a rotation vector (independent of phjax.quaternion)."""
     a = jnp.linalg.norm(v)
     return jnp.concatenate([jnp.cos(a / 2)[None], jnp.sinc(a / (2 * jnp.pi)) / 2 * v])
+
+
+def test_epoch_times_in_float32_are_an_error_not_a_collapse():
+    """Unix times (1.7e9 s) in float32 are rounded to 128 s: every measurement time came out
+    equal, silently. The interpolation runs relative to the first time (so the result at
+    relative times is unchanged) and times float32 cannot return are an error."""
+    t, p, q = _smooth_gt()
+    t32 = t.astype(np.float64)
+    with pytest.raises(ValueError, match="pass times relative to the first"):
+        simulate_measurements(0, t32 + 1.7e9, p.astype(np.float32), q.astype(np.float32))
+    out = simulate_measurements(0, t32, p.astype(np.float32), q.astype(np.float32))
+    assert np.all(np.diff(np.asarray(out[0])) > 0)
