@@ -550,6 +550,14 @@ def main(argv=None):
               "TUM VI rooms": [i for i, d in enumerate(data) if d["kind"] == "object"]}
     print(f"{len(data)} recordings; train {[names[i] for i in train]}", flush=True)
     if not args.report_only:
+        for part, key in (("positions", "mp"), ("orientations", "mq")):
+            has = [bool(np.isfinite(d[key]).all(-1).any()) for d in data]
+            if any(has) and not any(has[i] for i in train):  # its knobs could not be tuned
+                print(f"display_frontier.py: error: no train recording has {part} (train: "
+                      f"{', '.join(names[i] for i in train)}; recordings are split "
+                      "alternately by sorted name); add recordings with them or rename",
+                      file=sys.stderr)
+                return 2
         results = {L: measure(data, L, train, small=args.smoke) for L in lookaheads}
         wall = time.time() - t0
         with open(out / "results.pkl", "wb") as fh:  # the scores, for --report-only

@@ -444,6 +444,32 @@ def test_display_frontier_smoke_on_named_recordings(tmp_path):
     assert (out / "display_frontier.png").stat().st_size > 20_000
 
 
+def test_display_frontier_refuses_unusable_recordings_in_one_line(tmp_path, capsys):
+    """A missing file or a file of several trajectories ended in a traceback; FILE#NAME
+    names one (as on phjax's command line); a split whose train half has no positions (the
+    position knobs untuned: "target met" numbers from the first grid values) is refused."""
+    import display_frontier as dfr
+
+    xyz = str(shared_path("tum_rgbd_groundtruth", "fr1_xyz-groundtruth.txt"))
+    cwi = str(shared_path("vr_cwi_6dof_navigation", "H1_longdress_nav.csv"))
+    corb = tmp_path / "a_head.txt"  # sorts first: the train half, orientation only
+    corb.write_bytes(shared_path("vr_corbillon_multiviewpoint360",
+                                 "user1_quaternion.txt").read_bytes())
+    corb = str(corb)
+    for files, message in (([str(tmp_path / "nope.txt"), xyz], "No such file"),
+                           ([cwi, xyz], "name one as FILE#NAME"),
+                           ([corb, xyz], "no train recording has positions")):
+        try:
+            rc = dfr.main(["--smoke", "--out", str(tmp_path / "o"), "--recordings", *files])
+        except SystemExit as stop:  # a bad recording: before any work
+            rc = stop.code
+        assert rc == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], err
+    seqs = dfr.load_recordings(15.0, files=[cwi + "#P01_V1", xyz])
+    assert [s[0] for s in seqs] == ["H1_longdress_nav#P01_V1", "fr1_xyz-groundtruth"]
+
+
 def test_display_frontier_render_phase_offsets_the_render_clock():
     """``--render-phase 0.5`` moves every render sample half a render period later, so none
     falls on a camera frame's instant (on the aligned clock every fourth does), and the truth is

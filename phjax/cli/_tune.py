@@ -7,6 +7,8 @@ PARAMS.json`` option reading a configuration written by ``phjax tune`` (or
 
 from __future__ import annotations
 
+import math
+import sys
 import time
 from pathlib import Path
 
@@ -32,6 +34,27 @@ def add_config_argument(parser) -> None:
     parser.add_argument("--config", metavar="PARAMS.json", default=None,
                         help="tracker parameters (JSON written by 'phjax tune'); default: the "
                         "built-in defaults")
+
+
+#: a tuned parameter that moved by more than this factor gets a warning
+FAR_MOVE = 100.0
+
+
+def _far_moves(start: dict, tuned: dict) -> dict:
+    """``name -> factor`` of the parameters that moved by more than :data:`FAR_MOVE` (a
+    ``log_`` parameter: by more than ``log(FAR_MOVE)``; a flat loss lets BFGS wander there)."""
+    out = {}
+    for k, v in tuned.items():
+        a, b = float(start[k]), float(v)
+        if "log_" in k.rsplit(".", 1)[-1]:
+            factor = math.exp(min(abs(b - a), 700.0))
+        elif a > 0 and b > 0:
+            factor = max(a / b, b / a)
+        else:
+            continue
+        if factor > FAR_MOVE:
+            out[k] = factor
+    return out
 
 
 def config_from_args(args):
@@ -227,6 +250,11 @@ def cmd_tune(args) -> int:
     for k in res.parameters:
         print(f"| {k} | {res.initial_parameters[k]:.5g} | {res.parameters[k]:.5g} |")
     print()
+    for k, factor in _far_moves(res.initial_parameters, res.parameters).items():
+        print(f"phjax tune: warning: {k} moved by a factor of {factor:.3g} "
+              f"({res.initial_parameters[k]:.5g} -> {res.parameters[k]:.5g}): the training data "
+              "hardly determine it; tune on longer or more recordings (--seconds) or leave it "
+              "out (--parameters)", file=sys.stderr)
     print("ratios to the Kalman-CV reference (start -> tuned)")
     print()
     print("| recording | pos RMSE | rot RMSE | pos jerk | rot jerk |")

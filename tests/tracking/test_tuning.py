@@ -622,3 +622,18 @@ print(np.abs(gp - (r - t[0])[:, None] * v).max())
                          env={**__import__("os").environ, "JAX_ENABLE_X64": "0"})
     assert out.returncode == 0, out.stderr
     assert float(out.stdout.strip().splitlines()[-1]) < 1e-5  # float32 at 1 m: ~1e-7
+
+
+def test_far_moves_of_tuned_parameters_are_flagged():
+    """A one-second window let BFGS take log_switch_rate from 0 to -31 and write it without a
+    word; moves beyond a factor of 100 (log parameters: beyond log 100) are now warned of."""
+    from phjax.cli._tune import _far_moves
+
+    start = {"log_switch_rate": 0.0, "horizon": 0.028, "imm.rotation_models.2.log_q": 1.28,
+             "kalman.pos_meas_noise": 0.005}
+    tuned = {"log_switch_rate": -31.1, "horizon": 0.03, "imm.rotation_models.2.log_q": 3.0,
+             "kalman.pos_meas_noise": 0.9}
+    far = _far_moves(start, tuned)
+    assert set(far) == {"log_switch_rate", "kalman.pos_meas_noise"}
+    assert far["log_switch_rate"] == pytest.approx(np.exp(31.1))
+    assert far["kalman.pos_meas_noise"] == pytest.approx(180.0)
