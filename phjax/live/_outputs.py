@@ -128,6 +128,11 @@ class Output:
         return f"{type(self).__name__}({self.url!r})"
 
 
+def _url_host(host: str) -> str:
+    """``host`` as written in a URL (an IPv6 address in brackets, as the parser reads it)."""
+    return f"[{host}]" if ":" in host else host
+
+
 def _resolve(host: str, port: int, what: str):
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)
@@ -146,7 +151,10 @@ def _udp_socket(host: str, port: int, what: str, from_port: int | None) -> socke
             except OSError as e:
                 raise OutputError(f"{what}: cannot use local port {from_port} ({e.strerror})"
                                   ) from None
-        sock.connect(addr)
+        try:
+            sock.connect(addr)
+        except OSError as e:  # e.g. a broadcast address (needs SO_BROADCAST): name the output
+            raise OutputError(f"{what}: cannot send there ({e.strerror or e})") from None
         sock.setblocking(False)
     except BaseException:
         sock.close()
@@ -183,7 +191,7 @@ class OpenTrackOutput(_UdpOutput):
 
     def __init__(self, host: str = "127.0.0.1", port: int = OPENTRACK_PORT,
                  from_port: int | None = None):
-        super().__init__(host, port, from_port, f"opentrack://{host}:{port}")
+        super().__init__(host, port, from_port, f"opentrack://{_url_host(host)}:{port}")
 
     def send(self, t, position, quaternion) -> None:
         self._send(_PACK.pack(*opentrack_values(position, quaternion)))
@@ -204,7 +212,7 @@ class OscOutput(_UdpOutput):
         except ImportError:
             raise OutputError("osc:// needs python-osc (pip install 'phjax[live]')") from None
         self._builder = OscMessageBuilder
-        super().__init__(host, port, from_port, f"osc://{host}:{port}")
+        super().__init__(host, port, from_port, f"osc://{_url_host(host)}:{port}")
 
     def send(self, t, position, quaternion) -> None:
         b = self._builder(address=OSC_ADDRESS)
@@ -271,7 +279,10 @@ def open_output(url: str) -> Output:
     Raises:
         OutputError: unknown scheme, missing host, bad or unusable port, unresolvable host.
     """
-    parsed = urllib.parse.urlsplit(url)
+    try:
+        parsed = urllib.parse.urlsplit(url)
+    except ValueError as e:  # "Invalid IPv6 URL", without the URL
+        raise OutputError(f"{url}: {e}") from None
     scheme = parsed.scheme.lower()
     if scheme not in ("opentrack", "osc"):
         raise OutputError(f"unknown output {url!r}; use opentrack://HOST[:PORT] or "

@@ -169,7 +169,10 @@ class UdpSource(Source):
             SourceError: a missing or bad port, an unknown option.
         """
         usage = "use udp://[HOST]:PORT, e.g. udp://127.0.0.1:5005"
-        parsed = urllib.parse.urlsplit(spec)
+        try:
+            parsed = urllib.parse.urlsplit(spec)
+        except ValueError as e:  # "Invalid IPv6 URL", without the URL
+            raise SourceError(f"{spec}: {e}; {usage}") from None
         port = url_port(parsed, spec, SourceError)
         if port is None:
             raise SourceError(f"{spec}: missing port; {usage}")

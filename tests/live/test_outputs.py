@@ -126,6 +126,8 @@ def test_tum_log_round_trip(tmp_path):
     ("opentrack://", "missing host"),
     ("opentrack://127.0.0.1:abc", "bad port"),
     ("opentrack://127.0.0.1:0", "out of range"),
+    ("opentrack://[::1", r"opentrack://\[::1: Invalid IPv6 URL"),
+    ("opentrack://255.255.255.255", "opentrack://255.255.255.255:4242: cannot send there"),
     ("osc://127.0.0.1:70000", "bad port"),
     ("osc://host.invalid", "cannot resolve"),
     ("opentrack://127.0.0.1:4242/path", "unexpected path"),
