@@ -99,6 +99,9 @@ _TABLE = 32  # intervals of the arc-length inversion start table
 
 def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Legendre nodes and weights on [0, 1]."""
+    if isinstance(n, bool) or int(n) != n or n < 1:
+        raise ValueError(f"num_nodes must be an integer >= 1, got {n!r}")
+    n = int(n)
     if n not in _GL_NODES:
         x, w = np.polynomial.legendre.leggauss(n)
         _GL_NODES[n] = ((x + 1) / 2, w / 2)
@@ -160,6 +163,8 @@ def _check_vec3(name: str, x) -> Array:
     x = jnp.asarray(x)
     if x.ndim < 1 or x.shape[-1] != 3:
         raise ValueError(f"{name} must have shape (..., 3), got shape {tuple(x.shape)}")
+    if jnp.issubdtype(x.dtype, jnp.complexfloating):  # a complex curve has no PH form here
+        raise TypeError(f"{name} must be real, got {x.dtype}")
     return x
 
 

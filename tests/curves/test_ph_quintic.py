@@ -789,6 +789,11 @@ def test_wrong_shapes_raise_clear_errors():
     c = pj.hermite_quintic(np.zeros(3), np.ones(3), np.ones(3), np.ones(3))
     with pytest.raises(ValueError, match="unknown frame kind"):
         c.frame(0.5, "bishop")
+    # complex data made a complex "curve"; num_nodes 0 ended in NumPy's own message
+    with pytest.raises(TypeError, match="p0 must be real"):
+        pj.hermite_quintic(np.zeros(3) + 0j, np.ones(3), np.ones(3), np.ones(3))
+    with pytest.raises(ValueError, match="num_nodes must be an integer >= 1"):
+        c.bending_energy(0)
 
 
 # ------------------------------------------------------------------ batching / jit / vmap
