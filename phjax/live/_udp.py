@@ -142,6 +142,8 @@ class UdpSource(Source):
         self.repeated = 0
         self.dropped: Counter = Counter()
         self.last_sender: str | None = None
+        #: every sender seen (host:port)
+        self.senders: set[str] = set()
         self._last_values: np.ndarray | None = None  # of the last valid datagram
         self._last_change: float | None = None  # arrival of the last new values
         self._since_change = 0  # valid datagrams since the last new values
@@ -255,6 +257,14 @@ class UdpSource(Source):
             values = self._check(data, sender)
             if values is None:
                 continue
+            if self.last_sender is not None and sender != self.last_sender \
+                    and sender not in self.senders:
+                # a restarted tracker, or two sending to one port (poses interleave): one
+                # line per new sender
+                self.report(f"phjax live: {self.name}: poses now from {sender} (before: "
+                            f"{self.last_sender}); if two trackers send to this port, their "
+                            "poses are mixed into one stream: give each its own port")
+            self.senders.add(sender)
             self.last_sender = sender
             if not self._is_measurement(t, values):
                 self.repeated += 1

@@ -589,3 +589,28 @@ def test_recording_through_phjax_live_udp():
     # less than the full lookahead. A flag that did nothing, or applied ms as s, would fail.
     for lead in (lp0 - lp1, lr0 - lr1):
         assert 0.5 * 0.05 <= lead <= 1.3 * 0.05, results
+
+
+def test_a_second_sender_is_named_once():
+    """Two trackers sending to one port interleave their poses into one stream, silently;
+    each new sender is now named once (a restarted tracker gets the same line)."""
+    lines = []
+    src = UdpSource("127.0.0.1", 0, report=lines.append, report_interval=0.0, poll=0.05)
+    src.open()
+    got, stop = [], threading.Event()
+    th = threading.Thread(target=src.run, args=(RealClock(), 0.0, stop, got.append))
+    th.start()
+    a = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    b = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        for k, tx in enumerate([a, a, b, b, a, b]):
+            tx.sendto(PACK.pack(k, 0, 60, 0, 0, 0), ("127.0.0.1", src.port))
+            assert _wait(lambda n=k + 1: src.received >= n)
+    finally:
+        stop.set()
+        th.join(5.0)
+        a.close()
+        b.close()
+        src.close()
+    assert len(lines) == 1 and "poses now from 127.0.0.1:" in lines[0], lines
+    assert len(src.senders) == 2
