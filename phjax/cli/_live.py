@@ -108,7 +108,7 @@ def cmd_live(args) -> int:
         restore()
         print(f"phjax live: stopped by {e} during the start; nothing was sent", file=sys.stderr)
         return 0
-    except (ValueError, FileNotFoundError) as e:  # SourceError and OutputError among them
+    except (ValueError, OSError) as e:  # SourceError and OutputError among them
         _abandon(lt, source)
         restore()
         print(f"phjax live: error: {e}", file=sys.stderr)
