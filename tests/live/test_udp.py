@@ -170,15 +170,22 @@ def _wait(cond, timeout=10.0):
     return cond()
 
 
-def test_malformed_datagrams_are_dropped_counted_and_reported():
-    """Wrong size, NaN, infinity and absurd values are dropped with a line naming what was
-    wrong (rate-limited), valid datagrams around them go through, the loop stops promptly."""
-    lines = []
+def _running_source(lines):
+    """A UdpSource on a free loopback port reporting into ``lines`` (no rate limit), its loop
+    running in a thread: ``(source, measurements received, stop event, thread)``."""
     src = UdpSource("127.0.0.1", 0, report=lines.append, report_interval=0.0, poll=0.05)
     src.open()
     got, stop = [], threading.Event()
     th = threading.Thread(target=src.run, args=(RealClock(), 0.0, stop, got.append))
     th.start()
+    return src, got, stop, th
+
+
+def test_malformed_datagrams_are_dropped_counted_and_reported():
+    """Wrong size, NaN, infinity and absurd values are dropped with a line naming what was
+    wrong (rate-limited), valid datagrams around them go through, the loop stops promptly."""
+    lines = []
+    src, got, stop, th = _running_source(lines)
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     good = [(1.0, -2.0, 60.0, 10.0, -5.0, 3.0), (1.5, -2.5, 61.0, 11.0, -4.0, 2.0)]
     bad = [
@@ -595,11 +602,7 @@ def test_a_second_sender_is_named_once():
     """Two trackers sending to one port interleave their poses into one stream, silently;
     each new sender is now named once (a restarted tracker gets the same line)."""
     lines = []
-    src = UdpSource("127.0.0.1", 0, report=lines.append, report_interval=0.0, poll=0.05)
-    src.open()
-    got, stop = [], threading.Event()
-    th = threading.Thread(target=src.run, args=(RealClock(), 0.0, stop, got.append))
-    th.start()
+    src, got, stop, th = _running_source(lines)
     a = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     b = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
