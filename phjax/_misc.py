@@ -11,6 +11,15 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
 
+def check_last_axis(x: ArrayLike, n: int, name: str) -> Array:
+    """``x`` as an array whose last axis has ``n`` entries (``ValueError`` naming ``name``
+    otherwise; a check of the static shape, so also inside ``jit``)."""
+    x = jnp.asarray(x)
+    if x.ndim < 1 or x.shape[-1] != n:
+        raise ValueError(f"{name} must have shape (..., {n}), got shape {tuple(x.shape)}")
+    return x
+
+
 def safe_sqrt(x: ArrayLike) -> Array:
     """``sqrt(max(x, 0))`` with gradient 0 (not inf) at ``x <= 0``."""
     x = jnp.asarray(x)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._misc import dot_last, safe_atan2, safe_div, safe_norm, safe_normalize, safe_sqrt
+from ._misc import check_last_axis, dot_last, safe_atan2, safe_div, safe_norm, safe_normalize, safe_sqrt
 
 __all__ = [
     "quat_mul",
@@ -34,11 +34,9 @@ __all__ = [
 
 
 def _last(x, n: int, name: str):
-    """``x`` as an array of floats whose last axis has ``n`` entries (``ValueError`` naming
-    ``name`` otherwise; a check of the static shape, so also inside ``jit``)."""
-    x = jnp.asarray(x)
-    if x.ndim < 1 or x.shape[-1] != n:
-        raise ValueError(f"{name} must have shape (..., {n}), got shape {tuple(x.shape)}")
+    """``x`` as an array of floats whose last axis has ``n`` entries (:func:`check_last_axis`;
+    integers become floats)."""
+    x = check_last_axis(x, n, name)
     if not jnp.issubdtype(x.dtype, jnp.inexact):
         x = x.astype(jnp.result_type(float))
     return x

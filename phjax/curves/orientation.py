@@ -21,7 +21,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._misc import safe_div
+from .._misc import check_last_axis, safe_div
 from . import _components as _c
 from .ph_quintic import _sample_axes
 
@@ -130,10 +130,8 @@ def quaternion_hermite(
     Returns:
         A :class:`QuaternionHermite`.
     """
-    q0, q1, w0, w1 = (jnp.asarray(x) for x in (q0, q1, w0, w1))
-    for name, x, n in (("q0", q0, 4), ("q1", q1, 4), ("w0", w0, 3), ("w1", w1, 3)):
-        if x.ndim < 1 or x.shape[-1] != n:
-            raise ValueError(f"{name} must have shape (..., {n}), got shape {tuple(x.shape)}")
+    q0, q1, w0, w1 = (check_last_axis(x, n, name) for x, n, name in (
+        (q0, 4, "q0"), (q1, 4, "q1"), (w0, 3, "w0"), (w1, 3, "w1")))
     dtype = jnp.result_type(float, q0, q1, w0, w1)
     q0, q1, w0, w1 = (x.astype(dtype) for x in (q0, q1, w0, w1))
     duration = jnp.asarray(duration, dtype)

@@ -64,6 +64,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._jit import filter_jit, jit
 from .._misc import (
+    check_last_axis,
     dot_last,
     safe_atan2,
     safe_div,
@@ -160,9 +161,7 @@ def _unit_fibre(xhat, u, m=None):
 
 
 def _check_vec3(name: str, x) -> Array:
-    x = jnp.asarray(x)
-    if x.ndim < 1 or x.shape[-1] != 3:
-        raise ValueError(f"{name} must have shape (..., 3), got shape {tuple(x.shape)}")
+    x = check_last_axis(x, 3, name)
     if jnp.issubdtype(x.dtype, jnp.complexfloating):  # a complex curve has no PH form here
         raise TypeError(f"{name} must be real, got {x.dtype}")
     return x
