@@ -17,6 +17,12 @@ def np_qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
                      a * v3 + b * u3 + (u1 * v2 - u2 * v1)], axis=-1)
 
 
+def np_any_part(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``(...)`` whether each pose of ``p (..., 3)``, ``q (..., 4)`` has a finite position or a
+    finite orientation: a measured frame of one-part (3-DoF or position-only) data too."""
+    return np.isfinite(np.asarray(q)).all(-1) | np.isfinite(np.asarray(p)).all(-1)
+
+
 def np_valid_quaternions(q: np.ndarray) -> np.ndarray:
     """``(...)`` whether each quaternion of ``q (..., 4)`` is a measurement the filter uses:
     finite and of non-zero norm (as ``phjax.tracking.kalman``'s own check)."""

@@ -165,6 +165,7 @@ def cmd_evaluate(args) -> int:
 
 def cmd_smooth(args) -> int:
     _x64()
+    from .._np_quat import np_any_part
     from ..io import Trajectory, write_trajectory
     from ..tracking.tracker import reconstruct, track
     from ._tune import config_from_args, with_noise_from_args
@@ -196,7 +197,7 @@ def cmd_smooth(args) -> int:
     t0 = time.perf_counter()
     p, q = fn(traj.times, traj.positions, traj.quaternions, render, config=config)
     p, q = np.asarray(p, np.float64), np.asarray(q, np.float64)
-    ok = np.isfinite(q).all(-1) | np.isfinite(p).all(-1)  # one-part data: that part
+    ok = np_any_part(p, q)  # one-part data: that part
     out = Trajectory(render[ok], p[ok], q[ok])
     note = replaced_note(args.output)
     write_trajectory(args.output, out, format=args.out_format)

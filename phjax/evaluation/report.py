@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._np_quat import np_any_part
 from ..motion.resample import interpolate_poses, snap_to_frames
 from ..motion.simulate import SensorModel, simulate_measurements
 from ..tracking import baselines
@@ -161,7 +162,7 @@ def evaluate_recording(
     methods = default_methods() if methods is None else methods
     gt_t, gt_p, gt_q, (mt, mp, mq), render, origin = simulate_and_grid(
         gt_times, gt_positions, gt_quaternions, sensor=sensor, render_rate=render_rate, seed=seed)
-    valid = np.isfinite(mq).all(-1) | np.isfinite(mp).all(-1)
+    valid = np_any_part(mp, mq)
     gp, gq = interpolate_poses(gt_t, gt_p, gt_q, render, max_gap=max_gt_gap)
     gp, gq = np.asarray(gp, np.float64), np.asarray(gq, np.float64)
     iterator = methods
@@ -207,7 +208,7 @@ def simulate_and_grid(gt_times, gt_positions, gt_quaternions, *,
     gt_q = np.asarray(gt_quaternions, np.float64)
     frames = simulate_measurements(seed, gt_t, gt_p, gt_q, sensor)
     mt, mp, mq = (np.asarray(x, np.float64) for x in frames)
-    valid = np.isfinite(mq).all(-1) | np.isfinite(mp).all(-1)  # a frame with either part
+    valid = np_any_part(mp, mq)
     if not np.any(valid):
         raise ValueError("the simulated sensor produced no valid measurement")
     start = mt[valid][0] + 1.0 / sensor.rate  # let every method see at least one frame

@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from .._np_quat import np_any_part
 from ..motion.simulate import SensorModel
 from ._tuning_stream import stream_metrics
 from .kalman import KalmanConfig
@@ -119,7 +120,7 @@ def prepare_recordings(
             t, p, q = t[keep], p[keep], q[keep]
         frames = simulate_measurements(seed + i, t, p, q, sensor)
         mt, mp, mq = (np.asarray(x, np.float64) for x in frames)
-        ok = np.isfinite(mq).all(-1) | np.isfinite(mp).all(-1)  # a frame with either part
+        ok = np_any_part(mp, mq)
         if not ok.any():
             raise ValueError(f"recording {i}: the simulated sensor produced no valid measurement")
         start = mt[ok][0] + 1.0 / float(sensor.rate)
@@ -219,7 +220,7 @@ def measured_recording(
                           for x in (fit.rotation, fit.translation, fit.quaternion))
         p = p @ rot.T + trans
         q = np.asarray(quat_mul(qr, q), np.float64)
-    ok = np.isfinite(q).all(-1) | np.isfinite(p).all(-1)  # a frame with either part
+    ok = np_any_part(p, q)
     if not ok.any():
         raise ValueError("measurements: no valid measurement (position or orientation)")
     frame = float(np.median(np.diff(t))) if t.size > 1 else 0.0
