@@ -17,6 +17,7 @@ from .._np_quat import np_any_part
 from ..motion.simulate import SensorModel
 from ._tuning_stream import stream_metrics
 from .kalman import KalmanConfig
+from .tracker import complete_one_part
 
 
 class TuningData(eqx.Module):
@@ -292,18 +293,12 @@ def tuning_data(
         origin = gp[np.argmax(known)] if known.any() else (
             mp[np.argmax(np.isfinite(mp).all(-1))] if has_pos else np.zeros(3))
         mp, gp = mp - origin, gp - origin
-        has_rot = np.isfinite(mq).all(-1).any()
-        if not has_pos:  # orientation only: track a fixed point (as track does)
-            ok = np.isfinite(mq).all(-1)
-            mp = np.where(ok[:, None], 0.0, np.nan) * np.ones((1, 3))
-        if not has_rot:  # position only: track a fixed orientation (as track does)
-            ok = np.isfinite(mp).all(-1)
-            mq = np.where(ok[:, None], np.array([1.0, 0, 0, 0]), np.nan)
+        mp, mq, (orientation_only, position_only) = complete_one_part(mp, mq)  # as track does
         rp, rq = (np.asarray(x, np.float64)
                   for x in kalman_extrapolation(mt, mp, mq, r, config=reference_config))
-        if not has_pos:
+        if orientation_only:
             rp = np.full_like(rp, np.nan)
-        if not has_rot:
+        if position_only:
             rq = np.full_like(rq, np.nan)
         # on the render samples padded to their size class (masked out): one compiled
         # stream_metrics per class, not per recording length

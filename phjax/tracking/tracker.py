@@ -576,19 +576,29 @@ def _prepare_recording(times, positions, quaternions, render_times):
         warnings.warn(f"dropping {int(dup.sum())} measurement(s) with duplicate timestamps "
                       "(keeping the first)", TrajectoryWarning, stacklevel=3)
         times, positions, quaternions = times[~dup], positions[~dup], quaternions[~dup]
-    # the filter initialises from a whole pose: data with one part only tracks that part against
-    # a fixed other part (a point / the identity), and the missing part is reported as NaN
+    positions, quaternions, one_part = complete_one_part(positions, quaternions)
+    origin = times[0]
+    return times - origin, positions, quaternions, render_times - origin, one_part
+
+
+def complete_one_part(positions: np.ndarray, quaternions: np.ndarray):
+    """One-part data made whole for the filter, which initialises from a whole pose: with no
+    measured position, a fixed point where the orientation is measured; with no measured
+    orientation, the identity where the position is (NumPy, host side).
+
+    Returns:
+        ``(positions, quaternions, (orientation_only, position_only))``; the caller reports
+        the missing part as NaN.
+    """
     p_ok = np.isfinite(positions).all(-1, keepdims=True)
     q_ok = np_valid_quaternions(quaternions)[:, None]
     orientation_only = not np.any(p_ok)
     position_only = not orientation_only and not np.any(q_ok)
     if orientation_only:
-        positions = np.broadcast_to(np.where(q_ok, 0.0, np.nan), (times.shape[0], 3)).copy()
+        positions = np.broadcast_to(np.where(q_ok, 0.0, np.nan), positions.shape).copy()
     if position_only:
         quaternions = np.where(p_ok, np.array([1.0, 0.0, 0.0, 0.0]), np.nan)
-    origin = times[0]
-    return (times - origin, positions, quaternions, render_times - origin,
-            (orientation_only, position_only))
+    return positions, quaternions, (orientation_only, position_only)
 
 
 def check_config(config) -> None:
