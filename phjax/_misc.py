@@ -6,9 +6,16 @@ Each helper returns finite values *and* finite gradients at its singular point, 
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float
+
+
+def any_traced(*trees) -> bool:
+    """Whether any leaf of ``trees`` is a JAX tracer: the call runs inside ``jax.jit``,
+    ``vmap`` or ``grad``, where host-side checks, padding and caches cannot look at values."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(trees))
 
 
 def check_last_axis(x: ArrayLike, n: int, name: str) -> Array:

@@ -14,6 +14,8 @@ import jax
 import numpy as np
 from jaxtyping import Array
 
+from ._misc import any_traced
+
 __all__ = ["MIN_FRAMES", "MIN_RENDER", "pad_samples", "size_class", "unpad_rows"]
 
 #: smallest size classes (frames or samples, render or query times): short inputs share one
@@ -41,8 +43,7 @@ def pad_samples(times, positions, quaternions, query_times, *others):
     Returns:
         ``(times (nb,), positions (nb, 3), quaternions (nb, 4), query_times (mb,))`` or ``None``.
     """
-    if any(isinstance(x, jax.core.Tracer) for x in (times, positions, quaternions, query_times,
-                                                     *others)):
+    if any_traced(times, positions, quaternions, query_times, others):
         return None
     t, p, q, r = (np.asarray(x) for x in (times, positions, quaternions, query_times))
     if not all(np.issubdtype(x.dtype, np.floating) for x in (t, p, q, r)):
@@ -59,6 +60,6 @@ def unpad_rows(x: Array, m: int) -> Array:
     """The first ``m`` rows of a result computed on padded inputs (sliced on the host and put
     back with ``device_put``: a slice of a JAX array, or ``jnp.asarray`` of a NumPy array,
     compiles a small program for every length)."""
-    if isinstance(x, jax.core.Tracer):  # computed from traced parameters (jax.grad of a call)
+    if any_traced(x):  # computed from traced parameters (jax.grad of a call)
         return x[:m]
     return jax.device_put(np.asarray(x)[:m])

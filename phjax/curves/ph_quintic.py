@@ -64,6 +64,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._jit import filter_jit, jit
 from .._misc import (
+    any_traced,
     check_last_axis,
     dot_last,
     safe_atan2,
@@ -339,7 +340,7 @@ def _sample_axes(batch: tuple[int, ...], shape: tuple[int, ...], name: str = "t"
 
 
 def _is_tracer(x) -> bool:
-    return isinstance(x, jax.core.Tracer)
+    return any_traced(x)
 
 
 # ------------------------------------------------------------------------------ the curve

@@ -118,7 +118,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._jit import jit
-from .._misc import safe_div, safe_norm, safe_sqrt
+from .._misc import any_traced, safe_div, safe_norm, safe_sqrt
 from .ph_quintic import (
     PHQuintic,
     _cc_angles,
@@ -901,9 +901,9 @@ def _solve_compiled(st: _Settings, *args):
     """:func:`_solve_jit` through an ahead-of-time compiled executable when the inputs are
     concrete. ``jax.grad`` evaluates :func:`_solve`'s JVP rule inside a transformation, where a
     plain ``jit`` call would compile the solver again; the cached executable avoids that."""
-    leaves = jax.tree.leaves(args)
-    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+    if any_traced(args):
         return _solve_jit(st, *args)
+    leaves = jax.tree.leaves(args)
     key = (st, args[-1] is None,
            tuple((x.shape, x.dtype, getattr(x, "sharding", None)) for x in leaves))
     exe = _SOLVER_CACHE.get(key)

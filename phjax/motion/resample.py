@@ -14,14 +14,13 @@ NaN.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._jit import jit
-from .._misc import safe_div
+from .._misc import any_traced, safe_div
 from .._sizes import pad_samples, unpad_rows
 from ..quaternion import quat_conj, quat_mul, quat_normalize, quat_slerp, quat_to_rotvec
 
@@ -146,7 +145,7 @@ def interpolate_poses(
             "expected times (n,), positions (n, 3), quaternions (n, 4) with n >= 1 and 1-D "
             f"query_times; got {shapes[0]}, {shapes[1]}, {shapes[2]}, {shapes[3]}"
         )
-    if not isinstance(times, jax.core.Tracer) and np.any(np.diff(np.asarray(times)) < 0):
+    if not any_traced(times) and np.any(np.diff(np.asarray(times)) < 0):
         raise ValueError("times must be non-decreasing (sort the samples first)")
     padded = pad_samples(times, positions, quaternions, query_times, max_gap)
     if padded is None:  # traced (or not floating point): the caller's shapes

@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from .._jit import COMPILER_OPTIONS, jit
+from .._misc import any_traced
 from ._shapes import MAX_COMPILED_SHAPES
 
 __all__ = ["call", "exported_programs"]
@@ -115,9 +116,9 @@ def call(core, config, args):
     if folder is None:
         return None
     dtype = jnp.result_type(args[0])
-    leaves, treedef = jax.tree.flatten(config)
-    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+    if any_traced(config):
         return None
+    leaves, treedef = jax.tree.flatten(config)
     # Python floats become arrays of the recording's dtype: the values the traced core sees
     leaves = [jnp.asarray(x, dtype) if isinstance(x, float) else jnp.asarray(x) for x in leaves]
     fun = core.__wrapped__

@@ -47,7 +47,7 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
 from .._jit import jit
-from .._misc import safe_div, safe_norm
+from .._misc import any_traced, safe_div, safe_norm
 from .._np_quat import np_from_rotvec as _np_from_rotvec
 from .._np_quat import np_hemisphere as _np_hemisphere
 from .._np_quat import np_qconj as _np_qconj
@@ -113,7 +113,7 @@ def _size_classed(jitted):
     @functools.wraps(jitted)
     def call(times, positions, quaternions, render_times, **params):
         args = (times, positions, quaternions, render_times)
-        if not any(isinstance(x, jax.core.Tracer) for x in (*args, *jax.tree.leaves(params))):
+        if not any_traced(args, params):
             _check_inputs(*(np.asarray(x) for x in args))
             padded = pad_samples(*args)
             if padded is not None:

@@ -51,6 +51,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._jit import jit
+from .._misc import any_traced
 from .._np_quat import np_valid_quaternions
 from ..io import TrajectoryWarning
 from .._sizes import unpad_rows
@@ -143,7 +144,7 @@ class TrackerConfig(eqx.Module):
                                ("adapt", lambda x: x == x, ""),
                                ("lookahead", lambda x: x == x, "")):
             value = getattr(self, name)
-            if isinstance(value, jax.core.Tracer):
+            if any_traced(value):
                 continue
             try:
                 x = None if isinstance(value, (str, bytes)) else np.asarray(value, np.float64)
@@ -610,11 +611,6 @@ def check_config(config) -> None:
                         f"{type(config).__name__}")
 
 
-def _traced(*arrays) -> bool:
-    """Whether any input is a JAX tracer (inside ``jax.jit``, ``vmap``, ``grad``...)."""
-    return any(isinstance(x, jax.core.Tracer) for x in arrays)
-
-
 def _run_traced(core, config, times, positions, quaternions, render_times, dtype):
     """``track`` / ``reconstruct`` inside a JAX transformation: the recording(s) as given, with
     no host-side sorting, de-duplication, padding or checks (times must be finite and strictly
@@ -736,7 +732,7 @@ def track(
         measurement (and at padded render times).
     """
     check_config(config)
-    if _traced(times, positions, quaternions, render_times):
+    if any_traced(times, positions, quaternions, render_times):
         return _run_traced(_track_core, config, times, positions, quaternions, render_times,
                            dtype)
     if np.ndim(times) > 1:
@@ -808,7 +804,7 @@ def reconstruct(
         ``(positions (*B, M, 3), quaternions (*B, M, 4))``.
     """
     check_config(config)
-    if _traced(times, positions, quaternions, render_times):
+    if any_traced(times, positions, quaternions, render_times):
         return _run_traced(_reconstruct_core, config, times, positions, quaternions,
                            render_times, dtype)
     if np.ndim(times) > 1:
