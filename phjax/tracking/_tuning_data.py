@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .._np_quat import np_any_part
+from .._np_quat import np_any_part, np_valid_quaternions
 from ..motion.simulate import SensorModel
 from ._tuning_stream import stream_metrics
 from .kalman import KalmanConfig
@@ -156,8 +156,7 @@ def _as_measured(i, rec):
     if m < 4 or not np.all(np.isfinite(r)) or np.any(np.diff(r) <= 0):
         raise ValueError(f"recording {i}: render times must be finite, strictly increasing and "
                          f"at least 4 (for the jerk terms); got {m}")
-    if not ((np.isfinite(q).all(-1) & (np.linalg.norm(q, axis=-1) > 0)).any()
-            or np.isfinite(p).all(-1).any()):
+    if not (np_valid_quaternions(q).any() or np.isfinite(p).all(-1).any()):
         raise ValueError(f"recording {i}: no valid measurement (position or orientation)")
     r = snap_to_frames(np.asarray(rec[0]), r)
     first = np.concatenate([[True], np.diff(t) > 0])
