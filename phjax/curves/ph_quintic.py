@@ -517,15 +517,32 @@ class PHQuintic(eqx.Module):
     @_jit_method
     def torsion(self, t: Float[ArrayLike, "*#batch T"]) -> Float[Array, "*batch T"]:
         """Torsion ``tau = (r' x r'') . r''' / |r' x r''|^2`` with ``|r' x r''|^2 = sigma^2 rho``,
-        ``rho = 4 (b_y^2 + b_z^2)`` (0 where the curvature vanishes)."""
+        ``rho = 4 (b_y^2 + b_z^2)`` (0 where the curvature vanishes). Near a cusp (speed below
+        ``eps`` of the curve's scale ``|A0|^2 + |A1|^2 + |A2|^2``) the value is kept and its
+        gradient is zero: the true gradient there overflows."""
         t, k = self._prep_t(t)
         _, _, sigma, b = self._curv_parts(t, k)
-        # in units of the speed (each factor O(1) at any data scale: the quotient's backward
-        # pass of the raw form divides by sigma^4 rho^2 ~ s^8, which overflows for tiny data)
-        e1, e2, e3 = (safe_div(d, sigma[..., None]) for d in self._derivs(t, k))
-        bn = safe_div(b, sigma[..., None])
-        rho = 4 * (bn[..., 1] ** 2 + bn[..., 2] ** 2)
-        return safe_div(dot_last(jnp.cross(e1, e2), e3), rho * sigma)
+        derivs = self._derivs(t, k)
+
+        def tau(sigma, b, derivs):
+            # in units of the speed (each factor O(1) at any data scale: the quotient's backward
+            # pass of the raw form divides by sigma^4 rho^2 ~ s^8, which overflows for tiny data)
+            e1, e2, e3 = (safe_div(d, sigma[..., None]) for d in derivs)
+            bn = safe_div(b, sigma[..., None])
+            rho = 4 * (bn[..., 1] ** 2 + bn[..., 2] ** 2)
+            return safe_div(dot_last(jnp.cross(e1, e2), e3), rho * sigma)
+
+        # Near a cusp (speed below eps of the curve's scale) the torsion grows like 1/speed^2 and
+        # its gradient's intermediates overflow (NaN): there the value is kept and the gradient
+        # is zero, the regular formula seeing a well-conditioned stand-in (a unit helix).
+        scale = sum(dot_last(a, a) for a in (self.A0, self.A1, self.A2))
+        scale = self._ex(scale[..., None], k, 1)[..., 0]
+        ok = sigma > jnp.finfo(self.dtype).eps * scale
+        okv = ok[..., None]
+        helix = (jnp.array([1.0, 0.0, 1.0]), jnp.array([0.0, 1.0, 0.0]), jnp.array([-1.0, 0.0, 0.0]))
+        regular = tau(jnp.where(ok, sigma, 1), jnp.where(okv, b, jnp.array([0.0, 1.0, 0.0])),
+                      [jnp.where(okv, d, h.astype(d.dtype)) for d, h in zip(derivs, helix)])
+        return jnp.where(ok, regular, lax.stop_gradient(tau(sigma, b, derivs)))
 
     @filter_jit
     def bending_energy(self, num_nodes: int = 64) -> Float[Array, "*batch"]:
