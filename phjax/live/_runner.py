@@ -555,6 +555,9 @@ class LiveTracker:
                 t_k = self.t0 + self.k * period
                 end = self._end_time
                 if end is not None and t_k > end + 1e-9:
+                    # the run lasts its duration even when the rate's period is longer than
+                    # what is left of it (rates of 1 Hz and below)
+                    clock.sleep_until(end, self._stop)
                     break
                 clock.sleep_until(t_k, self._stop)
                 if self._stop.is_set():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -291,6 +292,21 @@ def test_virtual_clock_deadline_k_is_exactly_t0_plus_k_over_rate():
     # the render times themselves (absolute, on the clock): t0 + k / rate up to the rounding
     # of that one sum (ulp(1e6) = 1.2e-10)
     np.testing.assert_allclose(rel, k / rate, rtol=0, atol=5e-10)
+
+
+@pytest.mark.parametrize("rate, duration", [(0.4, 3.0), (1.0, 2.5), (120.0, 1.0)])
+def test_run_lasts_its_duration_at_slow_rates(rate, duration):
+    """A run ends ``duration`` after its start, also when the render period is longer than what
+    is left of it (0.4 Hz for 3 s ended after 2.5 s, at its last whole period); the samples are
+    the deadlines inside the run."""
+    t, p, q = smooth_motion(int(30 * (duration + 2)), 30.0, seed=2)
+    t0 = 500.0
+    lt = LiveTracker(PoseReplaySource(t, p, q), rate=rate, duration=duration,
+                     clock=VirtualClock(t0))
+    lt.run()
+    assert lt._t_render_end == pytest.approx(t0 + duration, abs=1e-9)
+    assert lt.stats()["elapsed"] == pytest.approx(duration, abs=1e-9)
+    assert lt.sent + lt.waiting + lt.missed_deadlines == math.floor(duration * rate + 1e-9) + 1
 
 
 @pytest.mark.serial
