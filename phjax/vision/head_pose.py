@@ -38,6 +38,11 @@ Pipeline of one frame
    head has turned more than ``keyframe_angle`` from the nearest keyframe (up to
    ``max_keyframes``); each frame is aligned to the keyframe nearest in orientation to the
    last pose, which keeps large rotations trackable without chaining every frame.
+6. **Re-acquisition.** A reference started without a detected face (depth fallback: possibly
+   furniture, when the camera starts before the user sits down) is provisional: the first
+   detected face that does not align to it starts a new reference there. A confirmed reference
+   is replaced after ``reacquire_after`` failed alignments in a row (the user or the camera
+   moved too far), keeping the last orientation.
 
 The JAX part of a frame is two jitted calls (observations; matching + RANSAC + ICP) on padded
 arrays (keypoints, landmarks, crop grid and keyframe cloud have static sizes), so there is no
@@ -130,6 +135,13 @@ class HeadPoseConfig:
 
     Pose: ``keyframe_angle`` (deg), ``max_keyframes``, ``head_center_offset`` (m),
     ``min_valid_depth`` (valid depth pixels needed in a frame), ``seed``.
+
+    Re-acquisition: ``reacquire_after`` (frames). A reference (keyframe 0) started without a
+    detected face (from the depth fallback or the tracked box: it may be furniture) is
+    provisional until a frame with a detected face aligns to it; a detected face that fails to
+    align to a provisional reference starts a new one at once. A confirmed reference is replaced
+    after ``reacquire_after`` failed alignments in a row, at the next one with a detected face
+    (0: never). A new reference keeps the last confirmed orientation (or the start rule's).
     """
 
     backend: str = "opencv"
@@ -166,6 +178,7 @@ class HeadPoseConfig:
     head_center_offset: float = 0.08
     min_valid_depth: int = 200
     seed: int = 0
+    reacquire_after: int = 30
 
     def __post_init__(self):
         if self.backend not in ("opencv", "kornia"):
@@ -176,6 +189,8 @@ class HeadPoseConfig:
             raise ValueError(f"icp must be 'projective', 'nearest' or 'none', got {self.icp!r}")
         if self.detect_interval < 1:
             raise ValueError("detect_interval must be >= 1")
+        if self.reacquire_after < 0:
+            raise ValueError("reacquire_after must be >= 0 (0: never)")
         for name in ("max_keypoints", "crop_grid", "cloud_points", "ransac_iterations"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1")
@@ -594,10 +609,15 @@ class HeadPoseEstimator:
         """Forget all keyframes and the last pose (``reference_pose`` as in the constructor)."""
         if reference_pose is not None:
             self._reference_pose = reference_pose
-        self.keyframes: list[_Keyframe] = []
-        self._kf_quats: list[np.ndarray] = []
+        self._forget_keyframes()
         self._last: tuple[np.ndarray, np.ndarray] | None = None
         self._frame_index = 0
+
+    def _forget_keyframes(self) -> None:
+        self.keyframes: list[_Keyframe] = []
+        self._kf_quats: list[np.ndarray] = []
+        self._confirmed = False  # keyframe 0 made from, or aligned with, a detected face
+        self._failed_run = 0  # failed alignments in a row
 
     @property
     def num_keyframes(self) -> int:
@@ -706,14 +726,17 @@ class HeadPoseEstimator:
         common = {"face": face, "face_source": source, "face_box": box}
 
         # --- 3. first frame: reference keyframe
-        if not self.keyframes:
-            q_ref, p_ref = self._start_reference(fr, idx)
+        def start_reference(q_ref=None):
+            q_ref, p_ref = self._start_reference(fr, idx, face is not None, q_ref)
             if q_ref is None:
                 return self._result(t, HeadPoseStatus.NO_DEPTH, timings=timings, **common)
             timings["jax"] = time.perf_counter() - t0
             timings["total"] = time.perf_counter() - t_start
             return HeadPoseResult(t, p_ref.copy(), q_ref.copy(), HeadPoseStatus.OK, keyframe=0,
                                   is_keyframe=True, timings=timings, **common)
+
+        if not self.keyframes:
+            return start_reference()
 
         # --- 4. align to the nearest keyframe
         kf_i, est, has_pred = self._align_to_keyframe(fr, idx)
@@ -723,10 +746,19 @@ class HeadPoseEstimator:
                 "candidate": _CANDIDATES[int(est.candidate)] if int(est.candidate) >= 0 else "",
                 "keyframe": kf_i}
         if not bool(est.accepted):
+            self._failed_run += 1
+            n = cfg.reacquire_after
+            if face is not None and (not self._confirmed or (n and self._failed_run >= n)):
+                # a face the reference does not fit: start again at it
+                q_keep = self._last[0] if self._confirmed and self._last is not None else None
+                self._forget_keyframes()
+                return start_reference(q_keep)
             status = (HeadPoseStatus.ALIGNMENT_FAILED if bool(est.any_measured) or has_pred
                       else HeadPoseStatus.TOO_FEW_MATCHES)
             timings["total"] = time.perf_counter() - t_start
             return self._result(t, status, timings=timings, **common, **info)
+        self._failed_run = 0
+        self._confirmed = self._confirmed or face is not None
 
         # --- 5. absolute pose, keyframes
         kf = self.keyframes[kf_i]
@@ -792,17 +824,18 @@ class HeadPoseEstimator:
             lm_uv, lm_valid = np.zeros((5, 2), np.float32), np.zeros(5, bool)
         return kps, lm_uv, lm_valid
 
-    def _start_reference(self, fr, idx: int):
-        """Make the first keyframe; ``(q_ref, p_ref)``, or ``(None, None)`` without depth."""
+    def _start_reference(self, fr, idx: int, detected: bool, q_keep=None):
+        """Make the first keyframe (from a detected face or not; with orientation ``q_keep``
+        when re-acquiring); ``(q_ref, p_ref)``, or ``(None, None)`` without depth."""
         cfg = self.config
         if not bool(fr.centre_ok):
             return None, None
-        if self._reference_pose is not None:
+        if self._reference_pose is not None and q_keep is None:
             q_ref = _canon(np.asarray(self._reference_pose[0], np.float64))
             p_ref = np.asarray(self._reference_pose[1], np.float64)
         else:
             c = np.asarray(fr.centre, np.float64)
-            q_ref = np.asarray([1.0, 0, 0, 0])
+            q_ref = np.asarray([1.0, 0, 0, 0]) if q_keep is None else _canon(q_keep)
             p_ref = c + cfg.head_center_offset * c / max(np.linalg.norm(c), 1e-9)
         kf = _make_keyframe(fr, jnp.asarray(q_ref, np.float32), jnp.asarray(p_ref, np.float32),
                             np.int32(idx), self._jcfg)
@@ -811,6 +844,7 @@ class HeadPoseEstimator:
         self.keyframes.append(kf)
         self._kf_quats.append(q_ref)
         self._last = (q_ref, p_ref)
+        self._confirmed = detected or self.detector is None
         return q_ref, p_ref
 
     def _align_to_keyframe(self, fr, idx: int):
