@@ -798,7 +798,8 @@ class HeadPoseEstimator:
         cfg = self.config
         face, source, box = None, "none", None
         if self.detector is not None and (idx % cfg.detect_interval == 0 or self._last is None):
-            faces = self.detector.detect(color)
+            # (a detector passed in may give a non-finite box: no face)
+            faces = [f for f in self.detector.detect(color) if np.isfinite(f.box).all()]
             if faces:
                 face = faces[0]
                 box, source = face.box, "detector"
@@ -819,7 +820,9 @@ class HeadPoseEstimator:
                                           box_scale=cfg.box_scale,
                                           fast_threshold=cfg.fast_threshold)
         if face is not None:
-            lm_uv, lm_valid = face.landmarks.astype(np.float32), np.ones(5, bool)
+            lm_uv = face.landmarks.astype(np.float32)
+            lm_valid = np.isfinite(lm_uv).all(-1)
+            lm_uv = np.where(lm_valid[:, None], lm_uv, 0).astype(np.float32)
         else:
             lm_uv, lm_valid = np.zeros((5, 2), np.float32), np.zeros(5, bool)
         return kps, lm_uv, lm_valid

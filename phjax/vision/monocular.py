@@ -454,14 +454,21 @@ class MonocularHeadPose:
         face = max(faces, key=lambda f: f.score)
         uv = np.asarray(face.landmarks, np.float64).reshape(5, 1, 2)
         obj = self.model.reshape(5, 1, 3)
-        if self._last is None:
-            ok, rvec, tvec = cv2.solvePnP(obj, uv, self._k, None, flags=cv2.SOLVEPNP_SQPNP)
-            if ok:
-                rvec, tvec = cv2.solvePnPRefineLM(obj, uv, self._k, None, rvec, tvec)
-        else:
-            rvec, tvec = (x.copy() for x in self._last)
-            ok, rvec, tvec = cv2.solvePnP(obj, uv, self._k, None, rvec, tvec,
-                                          useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+        ok, rvec, tvec = False, None, None
+        try:  # SQPnP asserts on degenerate points (all landmarks within a pixel, NaN)
+            if not np.isfinite(uv).all():
+                pass
+            elif self._last is None:
+                ok, rvec, tvec = cv2.solvePnP(obj, uv, self._k, None, flags=cv2.SOLVEPNP_SQPNP)
+                if ok:
+                    rvec, tvec = cv2.solvePnPRefineLM(obj, uv, self._k, None, rvec, tvec)
+            else:
+                rvec, tvec = (x.copy() for x in self._last)
+                ok, rvec, tvec = cv2.solvePnP(obj, uv, self._k, None, rvec, tvec,
+                                              useExtrinsicGuess=True,
+                                              flags=cv2.SOLVEPNP_ITERATIVE)
+        except cv2.error:
+            ok = False
         failed = {"face": face, "face_source": "detector", "face_box": face.box,
                   "timings": {"detect": t_det}}
         if not ok or not (np.isfinite(rvec).all() and np.isfinite(tvec).all()) or tvec[2] <= 0:

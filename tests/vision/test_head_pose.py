@@ -363,6 +363,30 @@ def test_confirmed_reference_is_replaced_after_reacquire_after_failures(biwi, de
             assert not any(r.ok for r in rs) and est.num_keyframes >= 1
 
 
+def test_non_finite_detector_box_is_no_detection(biwi):
+    """A detector passed in that gives a NaN or infinite box (or NaN landmarks) raised
+    ``ValueError: cannot convert float NaN to integer`` out of ``process``; such a box is no
+    detection (the depth fallback takes over) and NaN landmarks are unused."""
+    frames, _ = biwi
+    f = frames["00054"]
+
+    class Fixed:
+        def __init__(self, box, lm):
+            self.face = F.FaceDetection(np.asarray(box, np.float32), np.asarray(lm, np.float32), 0.9)
+
+        def detect(self, image):
+            return [self.face]
+
+    good_box = [250, 150, 150, 180]
+    for box, lm, source in [([np.nan] * 4, np.zeros((5, 2)), "depth"),
+                            ([0, 0, np.inf, np.inf], np.zeros((5, 2)), "depth"),
+                            (good_box, np.full((5, 2), np.nan), "detector")]:
+        est = H.HeadPoseEstimator(f.intrinsics, detector=Fixed(box, lm))
+        rs = [est.process_frame(frames[n]) for n in NAMES]
+        assert rs[0].ok and rs[0].face_source == source, (box, rs[0])
+        assert all(np.isfinite(r.position).all() or not r.ok for r in rs)
+
+
 def test_head_box_from_depth(biwi):
     frames, gt = biwi
     for n in NAMES:

@@ -281,6 +281,28 @@ def test_bad_input_gives_a_clear_status(est, detector):
         intrinsics_from_fov(0, 0)
 
 
+@pytest.mark.parametrize("landmarks", [
+    [[225.0, 225.0]] * 5,                                            # all in one point
+    [[225.0 + 0.01 * i, 225.0 + 0.01 * (i % 2)] for i in range(5)],  # within a pixel
+    [[np.nan, 1.0]] * 5,                                             # NaN
+])
+def test_landmark_method_on_degenerate_landmarks_is_a_status(landmarks):
+    """SQPnP asserts on landmarks without spread (a face a few pixels wide in a 1080p frame, or
+    NaN from a detector passed in): that was a cv2.error out of ``process`` (a live run ended
+    with status 1); it is ALIGNMENT_FAILED, and the next good frame is estimated again."""
+    class Fixed:
+        lm = np.asarray(landmarks, np.float32)
+
+        def detect(self, image):
+            return [F.FaceDetection(np.array([150, 120, 160, 200], np.float32), self.lm, 0.9)]
+
+    est = MonocularHeadPose(intrinsics_from_fov(450, 450), method="landmarks", detector=Fixed())
+    r = est.process(np.zeros((450, 450, 3), np.uint8))
+    assert r.status == HeadPoseStatus.ALIGNMENT_FAILED and np.isnan(r.position).all()
+    Fixed.lm = np.array([[200, 200], [250, 200], [225, 230], [205, 260], [245, 260]], np.float32)
+    assert est.process(np.zeros((450, 450, 3), np.uint8)).ok
+
+
 def test_missing_model_names_the_cache(tmp_path, detector):
     with pytest.raises(F.ModelNotFoundError, match="head-pose-0.4-small-int8.onnx"):
         MonocularHeadPose(intrinsics_from_fov(450, 450), detector=detector, model_dir=tmp_path)
