@@ -397,6 +397,57 @@ def test_predictor_bound_smoke(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------------
+# non-linear prediction (nonlinear_predictor.py)
+# ----------------------------------------------------------------------------------------------
+
+
+def test_local_frame_is_a_rotation_and_rotation_equivariant():
+    """The networks see the lag offsets in a frame built from the window itself: rotating the
+    window rotates the frame (so the local inputs do not change), also for a straight,
+    unaccelerated window (the second axis from the fallback) and a still one."""
+    import nonlinear_predictor as nl
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal((20, 3, 11))
+    x[0] = np.outer([1.0, 2.0, -0.5], -np.arange(1, 12))  # straight line, constant velocity
+    x[1] = 0.0                                             # still
+    for r in Rotation.random(3, random_state=2).as_matrix():
+        f, fr = nl.local_frame(x), nl.local_frame(np.einsum("ab,nbt->nat", r, x))
+        np.testing.assert_allclose(np.einsum("nab,nbc->nac", f.transpose(0, 2, 1), f),
+                                   np.broadcast_to(np.eye(3), f.shape), atol=1e-12)
+        np.testing.assert_allclose(np.linalg.det(f), 1.0, atol=1e-12)
+        np.testing.assert_allclose(fr[2:], r @ f[2:], atol=1e-9)
+        np.testing.assert_allclose(fr[0, :, 0], r @ f[0, :, 0], atol=1e-12)
+
+
+def test_networks_start_at_zero_output():
+    """Zero-initialised output layer and skip: the plain network starts at a zero offset and
+    the residual one *as* the IMM (early stopping may keep step 0)."""
+    import jax
+    import nonlinear_predictor as nl
+
+    p = nl.init_params(jax.random.PRNGKey(0), 34)
+    z = np.random.default_rng(0).standard_normal((50, 34))
+    assert np.all(np.asarray(nl.apply(p, z)) == 0)
+    assert nl.n_params(p) == 34 * 32 + 32 + 32 * 32 + 32 + 32 * 3 + 3 + 34 * 3
+
+
+def test_nonlinear_predictor_smoke(tmp_path):
+    shared_path("tum_rgbd_groundtruth")
+    import nonlinear_predictor as nl
+
+    out = tmp_path / "nl"
+    assert nl.main(["--quick", "--taps", "12", "--out", str(out)]) == 0
+    rows = _rows(out / "nonlinear_predictor.csv")
+    assert {r["channel"] for r in rows} == {"position", "rotation"}
+    assert {r["method"] for r in rows} == set(nl.METHODS)
+    assert {r["split"] for r in rows} == {"train", "test"}
+    assert all(np.isfinite(float(r["rmse"])) and float(r["rmse"]) > 0 for r in rows)
+    assert "Networks" in (out / "nonlinear_predictor.md").read_text()
+
+
+# ----------------------------------------------------------------------------------------------
 # the frontier at the display time (display_frontier.py)
 # ----------------------------------------------------------------------------------------------
 
