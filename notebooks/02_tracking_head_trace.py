@@ -62,8 +62,8 @@ print(f"{source}: {t.size} samples over {t[-1]:.1f} s, median walking speed "
 # %% [markdown]
 # ## Stream vs baselines
 # `evaluate_recording` simulates the camera and runs each method on the same measurements:
-# the causal phjax stream (`pj.track`: Kalman filter + one PH quintic / C1 quaternion segment per
-# camera frame), the causal baselines (Kalman constant-velocity extrapolation, One Euro filter
+# the causal phjax stream (`pj.track`: IMM filter + a segment of two C1-joined PH quintic /
+# quaternion pieces per camera frame), the causal baselines (Kalman constant-velocity extrapolation, One Euro filter
 # then hold, raw hold) and SciPy's offline cubic spline for reference.
 
 # %%
@@ -121,7 +121,8 @@ if out:
     fig.tight_layout()
     fig.savefig(os.path.join(out, "02_between_frames.png"), dpi=110)
     plt.close(fig)
-    print("figures written to", out)
+    if not in_jupyter:  # (a notebook's own temporary folder is no use to a reader)
+        print("figures written to", out)
     if in_jupyter:
         from IPython.display import Image, display
 
