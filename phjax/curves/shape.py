@@ -290,12 +290,20 @@ def _length(A0, A1, A2):
             + dot(A2, A2)) / 5
 
 
+def _per_sigma(x, sigma, k: int):
+    """``x / sigma^k`` as ``k`` divisions: the backward pass of a division by ``sigma^k``
+    squares it (``sigma^2k``), which leaves float32's range near a resting end (a still head:
+    NaN gradients for 1 mm segments), while each single division stays within it."""
+    for _ in range(k):
+        x = safe_div(x, sigma)
+    return x
+
+
 def _tau_reg_sq(sigma, rho, n, eps2):
     """``tau_e^2`` with ``tau_e = tau kappa^2/(kappa^2 + eps^2) = N / (sigma^2 (rho + eps^2
-    sigma^4))``."""
-    s4 = sigma**4
-    den = rho + eps2 * s4
-    return safe_div(n * n, s4 * den * den)
+    sigma^4)) = (N / sigma^4) / (rho / sigma^2 + eps^2 sigma^2)``."""
+    tau_e = safe_div(_per_sigma(n, sigma, 4), _per_sigma(rho, sigma, 2) + eps2 * sigma * sigma)
+    return tau_e * tau_e
 
 
 @functools.cache
@@ -376,7 +384,7 @@ class _Config(eqx.Module):
         x, w = (jnp.asarray(a, dt) for a in _gauss_legendre(num_nodes))
         tors = obj == "torsion_energy"
         sigma, rho, n = _local(A0, A1, A2, x, tors)
-        integrand = safe_div(rho, sigma**3)  # kappa^2 sigma
+        integrand = _per_sigma(rho, sigma, 3)  # kappa^2 sigma
         if tors:
             length = _length(A0, A1, A2)
             eps2 = safe_div(jnp.asarray(self.torsion_eps**2, dt), length * length)
@@ -390,7 +398,7 @@ class _Config(eqx.Module):
         sigma, rho, n = _local(A0, A1, A2, t, self.constrained_t)
         out = []
         if self.constrained_k:
-            out.append(safe_div(rho, sigma**4) / (factor * seg.kmax) ** 2)
+            out.append(_per_sigma(rho, sigma, 4) / (factor * seg.kmax) ** 2)
         if self.constrained_t:
             length = _length(A0, A1, A2)
             eps2 = safe_div(jnp.asarray(_TORSION_EPS_CONSTRAINT**2, dt), length * length)
@@ -600,8 +608,8 @@ def _report(seg: _Segment, A0, A1, A2, report_points: int, rtol: float):
     """Real ``max kappa``, ``max |tau|`` over uniform parameters; violation; feasibility."""
     t = jnp.linspace(0, 1, report_points, dtype=A0.dtype)
     sigma, rho, n = _local(A0, A1, A2, t, True)
-    kap = jnp.max(safe_div(safe_sqrt(rho), sigma * sigma))
-    tau = jnp.max(jnp.abs(safe_div(n, sigma * sigma * rho)))
+    kap = jnp.max(_per_sigma(safe_sqrt(rho), sigma, 2))
+    tau = jnp.max(jnp.abs(safe_div(_per_sigma(n, sigma, 4), _per_sigma(rho, sigma, 2))))
     vk = jnp.where(jnp.isinf(seg.kmax), 0, kap / seg.kmax - 1)
     vt = jnp.where(jnp.isinf(seg.tmax), 0, tau / seg.tmax - 1)
     viol = jnp.maximum(jnp.maximum(vk, vt), 0)

@@ -359,6 +359,31 @@ def test_float32_smoke(rnd, rnd_opt):
     assert np.median(np.abs(rel)) < 1e-4 and np.all(rel < 1e-2)
 
 
+@pytest.mark.parametrize("scale", [1.0, 1e-3, 1e-4])
+def test_float32_gradients_at_a_resting_end_of_a_millimetre_segment(scale):
+    """A still head gives segments with a zero end derivative, 1 mm long: the energy's
+    ``rho / sigma^3`` had a backward pass through ``sigma^6``, below float32's range, so the
+    gradient through ``optimize_shape`` was NaN from 1 mm on (found by probing); each division
+    now stays in range. Also the curve's own curvature and bending energy there."""
+    f32 = jnp.float32
+    p0 = jnp.zeros((2, 3), f32)
+    d0 = jnp.array([[0.0, 0, 0], [0.5, 0.2, 0.1]], f32) * scale
+    p1 = jnp.array([[1.0, 0, 0], [1.0, 0.3, 0]], f32) * scale
+    d1 = jnp.array([[1.0, 1, 0], [1.0, 1, 0]], f32) * scale
+
+    def total(p1):
+        return jnp.sum(optimize_shape(p0, p1, d0, d1)[1].objective)
+
+    g = jax.grad(total)(p1)
+    assert np.all(np.isfinite(np.asarray(g))), g
+    c = pj.hermite_quintic(p0[0], p1[0], d0[0], d1[0])
+    for fun in (lambda q: pj.hermite_quintic(p0[0], q, d0[0], d1[0]).bending_energy(),
+                lambda q: pj.hermite_quintic(p0[0], q, d0[0], d1[0]).curvature(
+                    jnp.array([1e-4, 3.5e-4, 1e-2], f32)).sum()):
+        assert np.all(np.isfinite(np.asarray(jax.grad(fun)(p1[0]))))
+    assert np.isfinite(float(c.bending_energy()))
+
+
 def test_status_enum_and_input_validation(rnd):
     assert [int(s) for s in ShapeStatus] == [0, 1, 2, 3, 4, 5]
     with pytest.raises(ValueError, match="unknown objective"):
