@@ -225,6 +225,15 @@ def _is_batch_sharded(leaf, sharding: NamedSharding) -> bool:
             and len(s.spec) > 0 and s.spec[0] == sharding.spec[0])
 
 
+def _require_batch_sharded(tree, sharding: NamedSharding, message: str) -> None:
+    """``ValueError(message)`` unless every array leaf of ``tree`` is split along ``sharding``'s
+    batch axis on its mesh (a replicated leaf beside split ones would be taken whole on every
+    device: outputs with the batch repeated once per device)."""
+    leaves = [x for x in jax.tree.leaves(tree) if isinstance(x, jax.Array)]
+    if not all(_is_batch_sharded(x, sharding) for x in leaves):
+        raise ValueError(message)
+
+
 @functools.lru_cache(maxsize=64)
 def _shard_mapped(fn: Callable, mesh: Mesh, axis, in_tree, batched: tuple, static: tuple,
                   donate: tuple = ()):

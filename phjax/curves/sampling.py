@@ -22,7 +22,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._jit import jit
-from ..batch import _leading_sharding, _sharded_function
+from ..batch import _leading_sharding, _require_batch_sharded, _sharded_function
 from .ph_quintic import PHQuintic
 
 __all__ = ["sample", "sample_chunks", "sample_into"]
@@ -87,8 +87,13 @@ def sample(
     static = {"n": _check_n(n), "by": by}
     sharding = _leading_sharding(curves) if curves.batch_shape else None
     if sharding is not None:
+        _require_batch_sharded(curves, sharding, _SHARD_MESSAGE)
         return _sharded_function(_sample_impl, sharding, (curves,), static)(curves)
     return _sample_jit(curves, **static)
+
+
+_SHARD_MESSAGE = ("a sharded batch of curves needs every one of its arrays split along axis 0 "
+                  "on the same mesh: shard the curves with phjax.batch.shard_batch")
 
 
 def _into_impl(curves, points, t, *, by):
@@ -146,6 +151,7 @@ def sample_into(
     sharding = _leading_sharding((curves, points, t)) if b else None
     if sharding is not None:
         args = (curves, points, t)
+        _require_batch_sharded(args, sharding, _SHARD_MESSAGE + " (and the buffers with them)")
         return _sharded_function(_into_impl, sharding, args, {"by": by}, donate=(1, 2))(*args)
     return _into_jit(curves, points, t, by=by)
 

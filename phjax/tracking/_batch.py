@@ -147,13 +147,13 @@ def run_batch(core, config, times, positions, quaternions, render_times, dtype, 
     args = (config, times, positions, quaternions, render_times)
     sharding = _leading_sharding(args[1:])
     if sharding is not None:
-        from ..batch import _is_batch_sharded
+        from ..batch import _require_batch_sharded
 
         need = args[1:4] if render_times.ndim == 1 else args[1:]
-        if not all(_is_batch_sharded(x, sharding) for x in need):
-            raise ValueError("a sharded batch needs times, positions, quaternions (and per-"
-                             "recording render times) all sharded along axis 0 on the same "
-                             "mesh: shard them together with phjax.batch.shard_batch")
+        _require_batch_sharded(need, sharding,
+                               "a sharded batch needs times, positions, quaternions (and per-"
+                               "recording render times) all sharded along axis 0 on the same "
+                               "mesh: shard them together with phjax.batch.shard_batch")
     static = {"core": core, "hold_end": hold_end, "dtype": dtype}
     if sharding is not None:
         fn = _sharded_function(_local, sharding, args, static)

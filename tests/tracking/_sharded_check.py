@@ -60,6 +60,11 @@ def main(path: str) -> None:
         t, p = pj.sample(sharded, 17, by=by)
         out["sample_" + by] = {"points": layout(p), "t": layout(t),
                                "diff": max(diff(p, p_ref), diff(t, t_ref))}
+    try:  # replicated curves into a sharded buffer: an error (it returned the batch 4 times)
+        pj.sample_into(curves, pj.shard_batch(jnp.zeros((8, 17, 3)), mesh))
+        out["sample_into_partial_error"] = ""
+    except ValueError as err:
+        out["sample_into_partial_error"] = str(err)
     buf = pj.shard_batch(jnp.zeros((8, 17, 3)), mesh)
     _, p = pj.sample_into(sharded, buf)
     out["sample_into"] = {"points": layout(p), "diff": diff(p, pj.sample(curves, 17)[1]),

@@ -111,6 +111,7 @@ def test_sharded_batch_equals_one_at_a_time(tmp_path):
         for out in ("points", "t"):
             assert res[name][out]["spec"][0] == "batch" and res[name][out]["devices"] == 4
         assert res[name]["diff"] <= 1e-12
+    assert "shard the curves with phjax.batch.shard_batch" in res["sample_into_partial_error"]
     assert res["sample_into"]["points"]["devices"] == 4 and res["sample_into"]["donated"]
     assert res["sample_into"]["diff"] <= 1e-12
     for out in ("control_points", "phi0"):
