@@ -43,7 +43,7 @@ from phjax.evaluation.metrics import (
     rms_jerk_rotation,
     rotation_rmse_deg,
 )
-from phjax.motion.resample import interpolate_poses
+from phjax.motion.resample import ground_truth_max_gap, interpolate_poses
 from phjax.motion.simulate import SensorModel, simulate_measurements
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -80,7 +80,7 @@ class Recording:
     def max_gap(self, protocol: Protocol) -> float:
         """Longest ground-truth gap (s) bridged by interpolation: ``protocol.max_gt_gap`` or 2.5
         median sample steps, whichever is larger (AVTrack360 is sampled at ~10 Hz)."""
-        return max(protocol.max_gt_gap, 2.5 * float(np.median(np.diff(self.times))))
+        return max(protocol.max_gt_gap, ground_truth_max_gap(self.times))
 
 
 def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:

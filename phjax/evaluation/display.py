@@ -34,7 +34,7 @@ from pathlib import Path
 import equinox as eqx
 import numpy as np
 
-from ..motion.resample import interpolate_poses
+from ..motion.resample import ground_truth_max_gap, interpolate_poses
 from ..motion.simulate import SensorModel
 from ..tracking import baselines
 from ..tracking.baselines import TUNED
@@ -284,7 +284,7 @@ def compare_at_display(
     render_rate: float = 120.0,
     seed: int = 0,
     baselines_: Sequence[KnobBaseline] = KNOB_BASELINES,
-    max_gt_gap: float = 0.1,
+    max_gt_gap: float | None = None,
     at_render_time: dict[str, dict] | None = None,
     progress: bool = False,
 ) -> DisplayComparison:
@@ -328,7 +328,8 @@ def compare_at_display(
     sweeps: dict[float, dict[str, list]] = {}
     for L, b in steps:
         gp, gq = (np.array(x, np.float64) for x in  # a copy: written below
-                  interpolate_poses(gt_t, gt_p, gt_q, render + L, max_gap=max_gt_gap))
+                  interpolate_poses(gt_t, gt_p, gt_q, render + L,
+                                    max_gap=ground_truth_max_gap(gt_t, max_gt_gap)))
         past = render + L > gt_t[-1]
         gp[past], gq[past] = np.nan, np.nan
 

@@ -93,7 +93,12 @@ _NAN = Metric(float("nan"), 0)
 
 
 def _as64(x: ArrayLike) -> np.ndarray:
-    return np.asarray(x, dtype=np.float64)
+    """``x`` as float64; rows of 4 are ``wxyz`` quaternions here, and a zero one (no
+    orientation: it normalises to nothing) becomes a NaN row, skipped like one."""
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim >= 2 and x.shape[-1] == 4:
+        x = np.where(np.sum(x * x, -1, keepdims=True) > 0, x, np.nan)
+    return x
 
 
 def _finite_rows(x: np.ndarray) -> np.ndarray:

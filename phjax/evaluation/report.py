@@ -23,7 +23,12 @@ from pathlib import Path
 import numpy as np
 
 from .._np_quat import np_any_part
-from ..motion.resample import interpolate_poses, snap_to_frames
+from ..motion.resample import (
+    ground_truth_max_gap,
+    interpolate_poses,
+    snap_to_frames,
+    warn_sparse_ground_truth,
+)
 from ..motion.simulate import SensorModel, simulate_measurements
 from ..tracking import baselines
 from ..tracking.baselines import TUNED
@@ -138,7 +143,7 @@ def evaluate_recording(
     seed: int = 0,
     methods: list[Method] | None = None,
     progress: bool = False,
-    max_gt_gap: float = 0.1,
+    max_gt_gap: float | None = None,
 ) -> EvaluationResult:
     """Simulate measurements from a ground-truth trajectory and score every method.
 
@@ -154,7 +159,9 @@ def evaluate_recording(
         seed: random seed of the sensor simulation.
         methods: methods to run (default :func:`default_methods`).
         progress: show a progress bar (tqdm) over methods.
-        max_gt_gap: ground-truth gaps longer than this (s) are excluded from the metrics.
+        max_gt_gap: ground-truth gaps longer than this (s) are excluded from the metrics
+            (default: :func:`phjax.motion.resample.ground_truth_max_gap`, 0.1 s or 2.5 median
+            ground-truth steps).
 
     Returns:
         An :class:`EvaluationResult`.
@@ -163,8 +170,10 @@ def evaluate_recording(
     gt_t, gt_p, gt_q, (mt, mp, mq), render, origin = simulate_and_grid(
         gt_times, gt_positions, gt_quaternions, sensor=sensor, render_rate=render_rate, seed=seed)
     valid = np_any_part(mp, mq)
-    gp, gq = interpolate_poses(gt_t, gt_p, gt_q, render, max_gap=max_gt_gap)
+    gp, gq = interpolate_poses(gt_t, gt_p, gt_q, render,
+                               max_gap=ground_truth_max_gap(gt_t, max_gt_gap))
     gp, gq = np.asarray(gp, np.float64), np.asarray(gq, np.float64)
+    warn_sparse_ground_truth(gt_t, render, gp, gq)
     iterator = methods
     if progress:
         from tqdm.auto import tqdm

@@ -24,12 +24,69 @@ from .._misc import any_traced, safe_div
 from .._sizes import pad_samples, unpad_rows
 from ..quaternion import quat_conj, quat_mul, quat_normalize, quat_slerp, quat_to_rotvec
 
-__all__ = ["interpolate_poses", "finite_difference_velocities", "snap_to_frames", "valid_rows"]
+__all__ = ["interpolate_poses", "finite_difference_velocities", "snap_to_frames", "valid_rows",
+           "valid_quaternion_rows", "ground_truth_max_gap", "MIN_GT_GAP",
+           "warn_sparse_ground_truth"]
 
 
 def valid_rows(x: Float[ArrayLike, "n k"]) -> Bool[Array, " n"]:
     """``True`` for rows of ``x`` whose entries are all finite."""
     return jnp.all(jnp.isfinite(jnp.asarray(x)), axis=-1)
+
+
+def valid_quaternion_rows(q: Float[ArrayLike, "n 4"]) -> Bool[Array, " n"]:
+    """``True`` for quaternions that are finite and not zero (a zero quaternion is no
+    orientation: normalising it would silently give the identity)."""
+    q = jnp.asarray(q)
+    ok = valid_rows(q)
+    return ok & (jnp.sum(jnp.where(ok[..., None], q, 0) ** 2, axis=-1) > 0)
+
+
+#: shortest ground-truth gap (s) that is never bridged by interpolation, whatever the rate
+MIN_GT_GAP = 0.1
+
+
+def ground_truth_max_gap(times: ArrayLike, max_gap: float | None = None) -> float:
+    """The longest ground-truth gap (s) an evaluation interpolates over: ``max_gap`` if given,
+    else :data:`MIN_GT_GAP` or 2.5 median sample steps, whichever is longer (a trace sampled
+    at 10 Hz, e.g. AVTrack360, has steps of 0.101 s: with a fixed 0.1 s three quarters of its
+    render samples went unscored).
+
+    Arguments:
+        times: ground-truth times (s), non-decreasing.
+        max_gap: an explicit choice (returned as is).
+    """
+    if max_gap is not None:
+        return float(max_gap)
+    steps = np.diff(np.asarray(times, np.float64))
+    steps = steps[np.isfinite(steps) & (steps > 0)]
+    return max(MIN_GT_GAP, 2.5 * float(np.median(steps))) if steps.size else MIN_GT_GAP
+
+
+def warn_sparse_ground_truth(gt_t, render, gp, gq) -> None:
+    """One-line warnings (:class:`phjax.io.TrajectoryWarning`) for ground truth too sparse to
+    score every render sample, or sampled so coarsely that its interpolation error is part of
+    every RMSE (evaluation and tuning data).
+
+    Arguments:
+        gt_t: ground-truth times (s); render: render times; gp, gq: the ground truth
+            interpolated there (NaN where not known).
+    """
+    import warnings
+
+    from ..io import TrajectoryWarning
+
+    steps = np.diff(gt_t)
+    step = float(np.median(steps[steps > 0])) if np.any(steps > 0) else 0.0
+    if step > 0.05:
+        warnings.warn(f"ground truth sampled at {1 / step:.3g} Hz: between its samples it is "
+                      "interpolated (linear / slerp), and that error is part of every RMSE",
+                      TrajectoryWarning, stacklevel=4)
+    scored = np.mean(np.isfinite(gp).all(-1) | np.isfinite(gq).all(-1)) if render.size else 1.0
+    if scored < 0.5:
+        warnings.warn(f"only {100 * scored:.0f} % of the render samples have ground truth "
+                      "(its gaps are longer than max_gt_gap): the metrics describe that part",
+                      TrajectoryWarning, stacklevel=4)
 
 
 def snap_to_frames(
@@ -175,7 +232,7 @@ def _interpolate_poses(times, positions, quaternions, query_times, max_gap):
     p_out = p[i0] + s * (p[i1] - p[i0])
     p_out = jnp.where(ok[:, None], p_out, jnp.asarray(jnp.nan, p_out.dtype))
 
-    vq = valid_rows(quaternions)
+    vq = valid_quaternion_rows(quaternions)
     ident = jnp.asarray([1, 0, 0, 0], quaternions.dtype)
     q = quat_normalize(jnp.where(vq[:, None], quaternions, ident))
     i0, i1, s, ok = _interp_weights(times, vq, k, query, max_gap)

@@ -76,7 +76,7 @@ def prepare_recordings(
     seed: int = 0,
     seconds: float | None = None,
     reference_config: KalmanConfig | None = None,
-    max_gt_gap: float = 0.1,
+    max_gt_gap: float | None = None,
     dtype=None,
 ) -> TuningData:
     """Simulate measurements from ground-truth trajectories and stack them for :func:`tracker_loss`.
@@ -93,13 +93,19 @@ def prepare_recordings(
         seconds: keep only the first ``seconds`` of each recording (``None``: all).
         reference_config: Kalman noise of the reference stream used for normalisation (default
             the tuned values :data:`phjax.tracking.baselines.TUNED` ``["kalman"]``).
-        max_gt_gap: render samples inside ground-truth gaps longer than this (s) are ignored.
+        max_gt_gap: render samples inside ground-truth gaps longer than this (s) are ignored
+            (default: :func:`phjax.motion.resample.ground_truth_max_gap`).
         dtype: floating dtype of the arrays (default: JAX's default float).
 
     Returns:
         A :class:`TuningData`.
     """
-    from ..motion.resample import interpolate_poses, snap_to_frames
+    from ..motion.resample import (
+        ground_truth_max_gap,
+        interpolate_poses,
+        snap_to_frames,
+        warn_sparse_ground_truth,
+    )
     from ..motion.simulate import simulate_measurements
 
     sensor = SensorModel() if sensor is None else sensor
@@ -129,7 +135,8 @@ def prepare_recordings(
         r = snap_to_frames(np.asarray(frames[0]), np.arange(start, t[-1], 1.0 / render_rate))
         if r.size < 4:
             raise ValueError(f"recording {i} is too short ({t[-1]:.3g} s) for the jerk terms")
-        gp, gq = interpolate_poses(t, p, q, r, max_gap=max_gt_gap)
+        gp, gq = interpolate_poses(t, p, q, r, max_gap=ground_truth_max_gap(t, max_gt_gap))
+        warn_sparse_ground_truth(t, r, np.asarray(gp), np.asarray(gq))
         recs.append((mt, mp, mq, r, gp, gq))
     return tuning_data(recs, reference_config=reference_config, dtype=dtype)
 
@@ -170,7 +177,7 @@ def measured_recording(
     render_rate: float = 120.0,
     seconds: float | None = None,
     align: bool = False,
-    max_gt_gap: float = 0.1,
+    max_gt_gap: float | None = None,
 ) -> tuple[np.ndarray, ...]:
     """One recording of :func:`tuning_data` from a real pose stream and its ground truth.
 
@@ -186,7 +193,8 @@ def measured_recording(
             transform that best maps their positions onto the ground truth interpolated at
             their times (:func:`phjax.vision.alignment.align`; evo's SE(3) Umeyama alignment),
             applied to positions and orientations. Without it they must be in that frame.
-        max_gt_gap: ground truth inside gaps longer than this (s) is unknown (NaN).
+        max_gt_gap: ground truth inside gaps longer than this (s) is unknown (NaN) (default:
+            :func:`phjax.motion.resample.ground_truth_max_gap`).
 
     Returns:
         ``(times, positions, quaternions, render_times, gt_positions, gt_quaternions)``.
@@ -195,11 +203,12 @@ def measured_recording(
         ValueError: malformed input, no overlap with the ground truth, or too few render
             samples.
     """
-    from ..motion.resample import interpolate_poses
+    from ..motion.resample import ground_truth_max_gap, interpolate_poses, warn_sparse_ground_truth
     from ..quaternion import quat_mul
 
     gt_t, gt_p, gt_q = _as_traj(ground_truth)
     t, p, q = _as_traj(measurements, "measurement")
+    max_gt_gap = ground_truth_max_gap(gt_t, max_gt_gap)
     if seconds is not None:
         keep = t - t[0] <= seconds
         t, p, q = t[keep], p[keep], q[keep]
@@ -231,7 +240,12 @@ def measured_recording(
                          f"({max(0.0, min(t[-1], gt_t[-1]) - start):.3g} s) for the jerk terms")
     gp, gq = (np.asarray(x, np.float64)
               for x in interpolate_poses(gt_t - o, gt_p, gt_q, r - o, max_gap=max_gt_gap))
+    warn_sparse_ground_truth(gt_t, r, gp, gq)
     return t, p, q, r, gp, gq
+
+
+#: the fewest render samples with ground truth that make a recording's channel count in the loss
+MIN_SCORED = 8
 
 
 def _pad_render(r, length, *rows):
@@ -303,7 +317,19 @@ def tuning_data(
         # stream_metrics per class, not per recording length
         rr, mask, *rows = _pad_render(r, size_class(r.size, MIN_RENDER), rp, rq, gp, gq)
         ref = np.asarray(stream_metrics(rr, *rows, mask=mask), np.float64)
-        recs.append((mt, mp, mq, r, gp, gq, np.where(ref > 0, ref, np.nan)))
+        ref = np.where(ref > 0, ref, np.nan)
+        # a channel scored at too few render samples (ground truth sparser than its gap limit)
+        # does not steer the loss: a single sample's error said nothing and was taken at face
+        # value
+        for channel, known in ((0, np.isfinite(gp).all(-1)), (1, np.isfinite(gq).all(-1))):
+            if known.sum() < MIN_SCORED:
+                ref[[channel, channel + 2]] = np.nan
+        recs.append((mt, mp, mq, r, gp, gq, ref))
+    usable = [np.isfinite(x[6][[0, 2]]).all() or np.isfinite(x[6][[1, 3]]).all() for x in recs]
+    if not any(usable):
+        raise ValueError(f"no recording has ground truth at {MIN_SCORED} or more render samples "
+                         "in a channel the reference stream can score (a still head, or ground "
+                         "truth sparser than max_gt_gap): nothing to tune against")
     # common lengths rounded up to their size classes (phjax.tracking._shapes): data sets of
     # different lengths share one compiled loss and gradient
     n = size_class(max(x[0].size for x in recs), MIN_FRAMES)

@@ -55,7 +55,7 @@ from .._np_quat import np_qmul as _np_qmul
 from .._np_quat import np_qnormalize as _np_qnormalize
 from .._np_quat import np_rotvec as _np_rotvec
 from .._sizes import pad_samples, unpad_rows
-from ..motion.resample import interpolate_poses, valid_rows
+from ..motion.resample import interpolate_poses, valid_quaternion_rows, valid_rows
 from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
 
 __all__ = [
@@ -148,7 +148,7 @@ def _channels(times, positions, quaternions):
     """Common dtype, times, valid-row masks and NaN-free positions / unit quaternions (invalid
     rows replaced by zero / identity, so that they never enter the arithmetic) of a scan."""
     dtype = jnp.result_type(positions, quaternions, times)
-    vp, vq = valid_rows(positions), valid_rows(quaternions)
+    vp, vq = valid_rows(positions), valid_quaternion_rows(quaternions)
     p = jnp.where(vp[:, None], positions, 0).astype(dtype)
     q = quat_normalize(jnp.where(vq[:, None], quaternions, jnp.asarray(_IDENTITY, dtype))
                        .astype(dtype))
@@ -219,7 +219,7 @@ def hold(
     k = jnp.searchsorted(times, render_times, side="right") - 1
     return (
         _hold_channel(positions, valid_rows(positions), k),
-        _hold_channel(quaternions, valid_rows(quaternions), k),
+        _hold_channel(quaternions, valid_quaternion_rows(quaternions), k),
     )
 
 

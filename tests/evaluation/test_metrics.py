@@ -90,6 +90,19 @@ def test_rotation_rmse_matches_scipy_and_is_sign_invariant(seed):
     assert res.value == pytest.approx(ref, rel=1e-9)
 
 
+def test_zero_quaternion_rows_are_skipped():
+    """A zero quaternion is no orientation: skipped like a NaN row (it gave a NaN metric)."""
+    rng = np.random.default_rng(2)
+    q_gt = Rotation.random(20, random_state=3).as_quat()[:, [3, 0, 1, 2]]
+    q_est = q_gt + 0.01 * rng.normal(size=q_gt.shape)
+    zero, nan = q_est.copy(), q_est.copy()
+    zero[5], nan[5] = 0.0, np.nan
+    a, b = rotation_rmse_deg(zero, q_gt), rotation_rmse_deg(nan, q_gt)
+    assert a.count == b.count == 19 and a.value == b.value and math.isfinite(a.value)
+    t = np.arange(20) * 0.01
+    assert metrics.rms_jerk_rotation(t, zero) == metrics.rms_jerk_rotation(t, nan)
+
+
 def test_no_valid_rows_gives_nan_not_error():
     nan = np.full((5, 3), np.nan)
     res = position_rmse(nan, np.zeros((5, 3)))

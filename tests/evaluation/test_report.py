@@ -147,3 +147,40 @@ def test_zoom_window_is_centred_on_the_fastest_motion():
     x = np.stack([np.tanh(20 * (t - 0.1)), 0 * t, 0 * t], -1)  # at the start: clipped inside
     win = report._zoom_window(t, x, 1.0)
     assert t[win][0] == pytest.approx(0.0) and t[win][-1] == pytest.approx(1.0)
+
+
+# ------------------------------------------------------------------------ sparse ground truth
+
+
+def test_ground_truth_gap_rule():
+    from phjax.motion.resample import MIN_GT_GAP, ground_truth_max_gap
+
+    assert ground_truth_max_gap(np.arange(100) * 0.01) == MIN_GT_GAP  # 100 Hz
+    assert ground_truth_max_gap(np.arange(50) * 0.101) == pytest.approx(2.5 * 0.101)  # ~10 Hz
+    assert ground_truth_max_gap(np.arange(50) * 0.101, 0.05) == 0.05  # explicit
+    assert ground_truth_max_gap(np.zeros(3)) == MIN_GT_GAP  # no step at all
+
+
+def test_sparse_ground_truth_is_scored_and_said():
+    """Ground truth at 10 Hz (AVTrack360's rate, steps of 0.101 s) had every render sample in a
+    "gap" longer than the fixed 0.1 s: a quarter of them scored (one in 2788 at 5 Hz), in a
+    table that looked normal (found by probing). Now the gap limit follows the ground truth's
+    own step, every sample is scored, and a one-line warning says the ground truth is
+    interpolated; 120 Hz ground truth gives no warning."""
+    import warnings
+
+    import phjax as pj
+    from phjax.io import TrajectoryWarning
+
+    t, p, q = pj.synthetic_head_motion(duration=4.0, rate=120.0, seed=2)
+    sparse = slice(None, None, 12)  # 10 Hz
+    methods = [m for m in report.default_methods() if m.name == "raw hold"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        dense = report.evaluate_recording(t, p, q, methods=methods)
+    assert not [w for w in caught if issubclass(w.category, TrajectoryWarning)]
+    with pytest.warns(TrajectoryWarning, match="ground truth sampled at 9.9 Hz"):
+        res = report.evaluate_recording(t[sparse] * 1.01, p[sparse], q[sparse], methods=methods)
+    n = res.metrics["raw hold"]["position_rmse_n"]
+    assert n == np.isfinite(res.gt_positions).all(-1).sum() == res.render_times.size
+    assert dense.metrics["raw hold"]["position_rmse_n"] == dense.render_times.size

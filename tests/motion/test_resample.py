@@ -87,6 +87,20 @@ def test_knots_clamping_and_no_valid_rows():
     np.testing.assert_allclose(p_out, np.broadcast_to(p[2], (9, 3)))
 
 
+def test_zero_quaternion_is_skipped_like_nan():
+    """A zero quaternion row (no orientation) was normalised to the identity and interpolated
+    as a real sample: one ground-truth row 89 degrees off, and the raw-hold RMSE of an
+    evaluation 1.90 -> 7.31 deg (found by probing). It is skipped like a NaN row."""
+    _, t, p, q = _random_stream(3, n=8)
+    query = np.linspace(t[0], t[-1], 23)
+    qz, qn = q.copy(), q.copy()
+    qz[3], qn[3] = 0.0, np.nan
+    _, with_zero = interpolate_poses(t, p, qz, query)
+    _, with_nan = interpolate_poses(t, p, qn, query)
+    np.testing.assert_array_equal(np.asarray(with_zero), np.asarray(with_nan))
+    assert np.isfinite(np.asarray(with_zero)).all()
+
+
 def test_max_gap_gives_nan_strictly_inside_long_gaps():
     t = np.arange(10) * 0.1
     p = np.stack([t, 2 * t, -t], -1)

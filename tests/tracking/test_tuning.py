@@ -495,6 +495,24 @@ def _simulated(gt, seed, rate=120.0):
     return mt, mp, mq, r, gp, gq
 
 
+def test_nothing_to_tune_against_is_an_error():
+    """Ground truth sparser than the gap limit, or a still head (reference error zero): the
+    loss was 0 / 0 = 0 and ``phjax tune`` reported "converged" and wrote the start config
+    (found by probing). Now a ValueError; a channel scored at fewer than MIN_SCORED render
+    samples does not count."""
+    from phjax.tracking._tuning_data import MIN_SCORED
+
+    t, p, q = _ground_truth()
+    thin = slice(None, None, 60)  # 2 Hz ground truth, gaps of 0.5 s > the 0.1 s asked for
+    with pytest.raises(ValueError, match="nothing to tune against"):
+        tuning.prepare_recordings([(t[thin], p[thin], q[thin])], max_gt_gap=0.1)
+    still = (t, np.zeros_like(p), np.tile([1.0, 0, 0, 0], (t.size, 1)))
+    sensor = pj.SensorModel(sigma_p=0.0, sigma_r=0.0, dropout=0.0)
+    with pytest.raises(ValueError, match="nothing to tune against"):
+        tuning.prepare_recordings([still], sensor=sensor)
+    assert MIN_SCORED >= 4
+
+
 def test_tuning_data_of_simulated_frames_equals_prepare_recordings(data):
     got = tuning.tuning_data([_simulated(_ground_truth(), 0)])
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(data)):
