@@ -23,6 +23,7 @@ __all__ = [
     "check_output",
     "check_plot_output",
     "check_trajectory_output",
+    "float_between",
     "format_user_error",
     "nonnegative_float",
     "positive_float",
@@ -72,6 +73,22 @@ def positive_float(text: str) -> float:
     if not (math.isfinite(x) and x > 0):
         raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}")
     return x
+
+
+def float_between(low: float, high: float, unit: str = ""):
+    """argparse type factory: a finite number in ``[low, high]`` (``unit`` ends the message:
+    ``must be between 0.05 and 0.5 m, got 'inf'``)."""
+    suffix = f" {unit}" if unit else ""
+
+    def check(text: str) -> float:
+        x = _number(text)
+        if not (math.isfinite(x) and low <= x <= high):
+            raise argparse.ArgumentTypeError(
+                f"must be between {low:g} and {high:g}{suffix}, got {text!r}")
+        return x
+
+    check.__name__ = f"float in [{low:g}, {high:g}]"
+    return check
 
 
 def nonnegative_float(text: str) -> float:

@@ -8,7 +8,15 @@ import signal
 import sys
 import threading
 
-from ._common import check_lookahead, positive_float
+from ._common import check_lookahead, float_between, positive_float
+
+#: accepted ``--head-size`` (assumed vertical head size, m), ``--ipd`` (assumed
+#: inter-pupillary distance, m) and ``--fov`` (horizontal field of view, degrees): values
+#: outside them are typing errors (a millimetre value, a missing decimal point), and the
+#: monocular front-end turned them into NaN or zero poses
+HEAD_SIZE_RANGE = (0.05, 0.5)
+IPD_RANGE = (0.03, 0.1)
+FOV_RANGE = (10.0, 170.0)
 
 
 class _Interrupted(BaseException):  # not caught by a library's "except Exception"
@@ -165,21 +173,24 @@ def add_commands(sub) -> None:
         "a render loop samples it at --rate on absolute deadlines and sends each pose to every "
         "--output (and to --log). SOURCE: synthetic[:N[:SEED]] (the rendered test head), an "
         "RGB-D folder (Biwi, TUM RGB-D, color/+depth/), webcam[:INDEX] or a video file "
-        "(monocular: opentrack's head-pose network, or --monocular landmarks), "
+        "(monocular: opentrack's head-pose network, or --monocular landmarks; a file plays at "
+        "its own timestamps, at 30 fps when its header's frame rate is outside 1-240), "
         "realsense[:SERIAL] (pyrealsense2), poses:FILE (replay a pose file), "
         "udp://[HOST]:PORT (another tracker's opentrack UDP datagrams: x y z cm, yaw pitch "
         "roll deg; HOST default 0.0.0.0; add ?noise=monocular for a webcam tracker). Stops at "
         "the end of the source, after --duration, on Ctrl-C or SIGTERM; SIGUSR1 re-centres. "
         "Axes: see docs/live.md.")
-    p.add_argument("source", help="synthetic[:N[:SEED]] | RGB-D folder | webcam[:INDEX] | "
-                   "video file | realsense[:SERIAL] | poses:FILE | udp://[HOST]:PORT")
+    p.add_argument("source", help="synthetic[:N[:SEED]] (N >= 1, 0 <= SEED < 2**32) | RGB-D "
+                   "folder | webcam[:INDEX] (INDEX 0-99) | video file | realsense[:SERIAL] | "
+                   "poses:FILE | udp://[HOST]:PORT")
     p.add_argument("--output", "-o", action="append", metavar="URL",
                    help="opentrack://HOST[:PORT] (default port 4242; 48-byte datagrams of six "
                    "float64: x y z cm, yaw pitch roll deg) or osc://HOST[:PORT] (default 9000; "
                    "/phjax/pose t x y z qw qx qy qz); repeatable")
     p.add_argument("--rate", type=float, default=120.0, help="render rate, Hz (default 120)")
-    p.add_argument("--duration", type=float, default=None,
-                   help="stop after this many seconds (default: end of the source / Ctrl-C)")
+    p.add_argument("--duration", type=positive_float, default=None,
+                   help="stop after this many seconds (a positive finite number; default: end "
+                   "of the source / Ctrl-C)")
     p.add_argument("--log", default=None, help="write every sent pose to this TUM file")
     p.add_argument("--lookahead", type=float, default=0.0, metavar="MS",
                    help="display-time prediction, ms (default 0, at most 200): send the pose "
@@ -193,14 +204,17 @@ def add_commands(sub) -> None:
                    help="monocular sources: 'net' (default; opentrack's head-pose network, "
                    "research / non-commercial weights) or 'landmarks' (YuNet's five landmarks "
                    "+ PnP)")
-    p.add_argument("--head-size", type=float, default=None,
-                   help="monocular 'net': assumed vertical head size, m (default 0.20)")
-    p.add_argument("--ipd", type=float, default=None,
+    p.add_argument("--head-size", type=float_between(*HEAD_SIZE_RANGE, "m"), default=None,
+                   metavar="M",
+                   help="monocular 'net': assumed vertical head size, m (default 0.20; "
+                   f"{HEAD_SIZE_RANGE[0]:g}-{HEAD_SIZE_RANGE[1]:g})")
+    p.add_argument("--ipd", type=float_between(*IPD_RANGE, "m"), default=None, metavar="M",
                    help="monocular 'landmarks': assumed inter-pupillary distance, m (default "
-                   "0.063)")
-    p.add_argument("--fov", type=float, default=60.0,
+                   f"0.063; {IPD_RANGE[0]:g}-{IPD_RANGE[1]:g})")
+    p.add_argument("--fov", type=float_between(*FOV_RANGE, "degrees"), default=60.0,
+                   metavar="DEG",
                    help="monocular sources: horizontal field of view of the camera, degrees "
-                   "(default 60)")
+                   f"(default 60; {FOV_RANGE[0]:g}-{FOV_RANGE[1]:g})")
     p.add_argument("--model-dir", default=None,
                    help="model cache: YuNet, the head-pose network (default $PHJAX_MODEL_DIR "
                    "or ~/.cache/phjax/models)")

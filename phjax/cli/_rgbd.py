@@ -73,6 +73,10 @@ def cmd_track_rgbd(args) -> int:
     check_trajectory_output(args.output)
     if args.raw:
         check_trajectory_output(args.raw)
+    if str(args.source) == "synthetic" or str(args.source).startswith("synthetic:"):
+        from ..live._sources import synthetic_spec
+
+        synthetic_spec(args.source)  # N >= 1, 0 <= SEED < 2**32: the same check as phjax live
     seq = open_rgbd(args.source, **_reader_options(args))
     n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
     if n == 0:
@@ -173,8 +177,10 @@ def add_commands(sub) -> None:
         "landmarks lifted through depth, RANSAC alignment, point-to-plane ICP) on every frame "
         "of SOURCE and feed the poses to the causal tracker (phjax.track), written at --rate "
         "as a TUM trajectory (head pose in the colour camera frame). SOURCE: a Biwi Kinect "
-        "folder, a TUM RGB-D folder, a color/ + depth/ folder, or 'synthetic[:N[:SEED]]'.")
-    p.add_argument("source", help="RGB-D source (folder or synthetic[:N[:SEED]])")
+        "folder, a TUM RGB-D folder, a color/ + depth/ folder, or 'synthetic[:N[:SEED]]' "
+        "(N >= 1 frames, 0 <= SEED < 2**32).")
+    p.add_argument("source", help="RGB-D source (folder or synthetic[:N[:SEED]], N >= 1, "
+                   "0 <= SEED < 2**32)")
     add_output_argument(p, "output: the render-rate trajectory (.tum/.txt = TUM, .csv = CSV)")
     add_rate_argument(p)
     p.add_argument("--backend", choices=("opencv", "kornia"), default="opencv",

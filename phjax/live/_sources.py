@@ -5,18 +5,23 @@ capture time on the runner's clock and the head pose in the camera frame (NaN wh
 gave none). :func:`open_source` parses the ``SOURCE`` argument of ``phjax live``:
 
 ``synthetic[:N[:SEED]]``
-    the rendered synthetic head (:func:`phjax.vision.open_rgbd`) at 30 Hz through the RGB-D
-    front-end (:class:`phjax.vision.HeadPoseEstimator`). Rendering a frame takes 0.1-0.4 s of
-    CPU, so :class:`SyntheticSource` renders the frames once, before the first run that needs
-    them, into a frame cache (:func:`frame_cache_dir`) and plays them back like a camera.
+    the rendered synthetic head (:func:`phjax.vision.open_rgbd`; ``N >= 1`` frames,
+    ``0 <= SEED < 2**32``: :func:`synthetic_spec`) at 30 Hz through the RGB-D front-end
+    (:class:`phjax.vision.HeadPoseEstimator`). Rendering a frame takes 0.1-0.4 s of CPU, so
+    :class:`SyntheticSource` renders the frames once, before the first run that needs them,
+    into a frame cache (:func:`frame_cache_dir`; in memory, with a warning, when that folder
+    cannot be made) and plays them back like a camera.
 an RGB-D recording
     any folder :func:`phjax.vision.open_rgbd` accepts (Biwi, TUM RGB-D, colour + depth),
     replayed at its own timestamps through the same front-end.
-``webcam[:INDEX]`` or a video file
+``webcam[:INDEX]`` (``INDEX`` 0-99) or a video file
     OpenCV ``VideoCapture``, colour only, monocular head pose
     (:class:`phjax.vision.monocular.MonocularHeadPose`: opentrack's head-pose network by
     default, YuNet landmarks + PnP with ``monocular="landmarks"``), each pose with a confidence
-    that scales the filter's measurement noise; a file is replayed at its frame rate.
+    that scales the filter's measurement noise; a file is replayed at its own timestamps (a
+    header frame rate outside :data:`VIDEO_RATES` is taken as unknown: 30 Hz, with a warning).
+    A ``SOURCE`` without a known ``kind:`` prefix that is neither a file nor a folder but looks
+    like a path (``name.mp4``, ``dir/name``) is ``SOURCE: No such file or directory``.
 ``realsense[:SERIAL]``
     an Intel RealSense camera through ``pyrealsense2`` (the ``live`` extra): colour + depth
     aligned to colour, RGB-D front-end.
@@ -66,6 +71,57 @@ __all__ = [
 
 class SourceError(ValueError):
     """A source that cannot be opened: unknown kind, missing file or camera, missing package."""
+
+
+#: synthetic seeds: ``0 <= SEED < 2**32`` (what every random generator of the renderer takes)
+SEED_LIMIT = 2**32
+#: webcam indices: ``0 <= INDEX < 100`` (OpenCV reads an index of 100 and above as a backend
+#: code plus an index, and -1 as "any camera", which crashes it when there is none)
+WEBCAM_INDEX_LIMIT = 100
+#: frame rates a video file's header is trusted with, Hz (others: unknown, 30 Hz)
+VIDEO_RATES = (1.0, 240.0)
+#: the frame rate of a video file whose header gives none in :data:`VIDEO_RATES`, Hz
+DEFAULT_VIDEO_RATE = 30.0
+
+
+_SYNTHETIC_USAGE = "use synthetic[:N[:SEED]] (N >= 1 frames, 0 <= SEED < 2**32)"
+
+
+def synthetic_spec(spec: str) -> tuple[int, int]:
+    """``(N, SEED)`` of a ``synthetic[:N[:SEED]]`` source (defaults 90 and 0), checked:
+    integers, ``N >= 1``, ``0 <= SEED < 2**32`` (:data:`SEED_LIMIT`); the one check of
+    ``phjax live``, ``phjax track-rgbd`` and :class:`SyntheticSource`.
+
+    Raises:
+        SourceError: one line naming the source and the accepted values.
+    """
+    kind, _, arg = str(spec).partition(":")
+    try:
+        values = [int(v) for v in arg.split(":")] if arg else []
+    except ValueError:
+        values = None
+    if kind != "synthetic" or values is None or len(values) > 2:
+        raise SourceError(f"bad synthetic source {spec!r}; {_SYNTHETIC_USAGE}")
+    n, seed = values + [90, 0][len(values):]
+    _check_synthetic(n, seed, spec)
+    return n, seed
+
+
+def _check_synthetic(n: int, seed: int, spec: str) -> None:
+    if n < 1:
+        raise SourceError(f"bad synthetic source {spec!r}: N {n} frames; {_SYNTHETIC_USAGE}")
+    if not 0 <= seed < SEED_LIMIT:
+        raise SourceError(f"bad synthetic source {spec!r}: SEED {seed} out of range; "
+                          f"{_SYNTHETIC_USAGE}")
+
+
+def _webcam_index(index) -> int:
+    """A webcam index checked against 0 .. :data:`WEBCAM_INDEX_LIMIT` - 1 (a SourceError
+    otherwise: OpenCV crashes on -1 without a camera and fails on large ones)."""
+    if not (isinstance(index, int) and 0 <= index < WEBCAM_INDEX_LIMIT):
+        raise SourceError(f"bad webcam index {str(index)!r}; use webcam[:INDEX] with INDEX "
+                          f"0-{WEBCAM_INDEX_LIMIT - 1}")
+    return index
 
 
 @dataclass
@@ -350,7 +406,8 @@ def frame_cache_dir() -> Path | None:
     """The folder of the rendered synthetic head's frames: ``$PHJAX_FRAME_CACHE``, else
     ``$XDG_CACHE_HOME/phjax/frames``, else ``~/.cache/phjax/frames``; ``None`` when
     ``$PHJAX_FRAME_CACHE`` is ``off`` (or ``0``, ``no``, ``false``): the frames are then
-    rendered for each run and kept in memory."""
+    rendered for each run and kept in memory (as :class:`SyntheticSource` also does, with a
+    warning, when the folder cannot be made: a file in its path)."""
     value = os.environ.get(FRAME_CACHE_ENV, "").strip()
     if value.lower() in ("off", "0", "no", "false"):
         return None
@@ -424,7 +481,9 @@ class SyntheticSource(RGBDReplaySource):
         model_dir: YuNet model cache.
         estimator: a ready estimator (default: one with the default config).
         cache: the cache folder (``True``, default: :func:`frame_cache_dir`); ``None`` or
-            ``False``: keep the rendered frames in memory for this run only.
+            ``False``: keep the rendered frames in memory for this run only (also when the
+            folder cannot be made, e.g. ``$PHJAX_FRAME_CACHE`` names a file: one warning line
+            on ``report``).
         threads: rendering threads (default: one per CPU core).
         report: called with the one-line messages about rendering (default: print them on
             stderr).
@@ -434,8 +493,7 @@ class SyntheticSource(RGBDReplaySource):
                  estimator=None, cache: str | os.PathLike | bool | None = True,
                  threads: int | None = None,
                  report: Callable[[str], None] | None = None):
-        if int(num_frames) < 1:
-            raise SourceError(f"synthetic: need at least 1 frame, got {num_frames}")
+        _check_synthetic(int(num_frames), int(seed), f"synthetic:{num_frames}:{seed}")
         self.num_frames, self.seed = int(num_frames), int(seed)
         self.name = f"synthetic head ({self.num_frames} frames, seed {self.seed})"
         self.model_dir = model_dir
@@ -444,6 +502,7 @@ class SyntheticSource(RGBDReplaySource):
         self.rate = 30.0
         self.cache = frame_cache_dir() if cache is True else (
             Path(cache) if cache not in (None, False) else None)
+        self._cache_from_env = cache is True and bool(os.environ.get(FRAME_CACHE_ENV, "").strip())
         self.threads = threads
         self.report = report if report is not None else (
             lambda line: print(line, file=sys.stderr, flush=True))
@@ -467,7 +526,15 @@ class SyntheticSource(RGBDReplaySource):
         self._shape = (int(intr.height), int(intr.width))
         folder = self.folder
         if folder is not None:
-            folder.mkdir(parents=True, exist_ok=True)
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+            except OSError as e:  # e.g. $PHJAX_FRAME_CACHE names a file: render in memory
+                what = f"${FRAME_CACHE_ENV}={self.cache}" if self._cache_from_env else (
+                    f"frame cache {self.cache}")
+                self.report(f"synthetic head: warning: {what} is unusable "
+                            f"({e.strerror or type(e).__name__}); rendering the frames in "
+                            "memory for this run")
+                self.cache = None
         missing = [i for i in range(self.num_frames) if self._read(i) is None]
         self.rendered = len(missing)
         if missing:
@@ -513,7 +580,8 @@ class SyntheticSource(RGBDReplaySource):
         where = f"into {self.folder}" if self.folder is not None else "in memory"
         mb = len(missing) * self._shape[0] * self._shape[1] * 5 / 2**20
         self.report(f"synthetic head: rendering {len(missing)} of {self.num_frames} frames once "
-                    f"({mb:.0f} MB {where}); later runs read them")
+                    f"({mb:.0f} MB {where})"
+                    + ("; later runs read them" if self.folder is not None else ""))
         t = time.perf_counter()
         self._store(missing[0], rendered[missing[0]])  # compiles the renderer
         threads = self.threads or os.cpu_count() or 1
@@ -544,18 +612,33 @@ class VideoSource(Source):
     """``cv2.VideoCapture`` (a webcam index or a video file), monocular head pose.
 
     Arguments:
-        target: camera index (int) or video file path.
+        target: camera index (int, 0-99: :data:`WEBCAM_INDEX_LIMIT`) or video file path.
         ipd: assumed inter-pupillary distance, m (landmark method).
         fov: horizontal field of view of the camera, degrees (intrinsics of an uncalibrated
             camera; ignored when ``intrinsics`` is given).
-        intrinsics: a :class:`phjax.vision.CameraIntrinsics` of the frames.
+        intrinsics: a :class:`phjax.vision.CameraIntrinsics` of the frames (its size must be
+            the frames' size).
         model_dir: model cache (YuNet, the head-pose network).
         monocular: ``"net"`` (default: opentrack's head-pose network) or ``"landmarks"``
             (YuNet's five landmarks + PnP); see :mod:`phjax.vision.monocular`.
         head_size: assumed vertical head size, m (net method; default 0.20).
+        estimator: a ready front-end with ``process(frame, t)`` and ``reset()`` (default: a
+            :class:`phjax.vision.monocular.MonocularHeadPose` from the options above).
+        report: called with one-line warnings (default: print them on stderr).
 
-    A file is replayed at its frame rate (late frames skipped); a camera delivers frames at its
-    own rate and each frame's capture time is its arrival time.
+    A file is replayed at its frames' own timestamps (OpenCV's ``CAP_PROP_POS_MSEC``; a step
+    outside 1/240 s .. 2 s is replaced by the frame period). Its frame rate is the header's
+    when within :data:`VIDEO_RATES` (1-240 Hz); any other (0, 1000, 1e6, 1e-6 fps: a broken
+    or a high-speed header) is taken as unknown: the file is played at 30 Hz
+    (:data:`DEFAULT_VIDEO_RATE`) with one warning line. Late frames are skipped (counted in
+    :attr:`Measurement.dropped`; the last frame is always delivered; a frame that cannot be
+    decoded is a ``NO_FRAME`` measurement); a read error before the header's frame count ends
+    the replay with the warning ``video ended at frame N of M (read error)``. A camera
+    delivers frames at its own rate and each frame's capture time is its arrival time.
+
+    Raises:
+        SourceError: (on :meth:`open`) a missing file, a camera or file that cannot be opened
+            or read, intrinsics of another image size than the frames'.
     """
 
     depth_free = True
@@ -563,18 +646,22 @@ class VideoSource(Source):
 
     def __init__(self, target, *, ipd: float | None = None, fov: float = 60.0,
                  intrinsics=None, model_dir=None, monocular: str = "net",
-                 head_size: float | None = None):
+                 head_size: float | None = None, estimator=None,
+                 report: Callable[[str], None] | None = None):
         from ..vision.monocular import METHODS
 
         if monocular not in METHODS:
             raise SourceError(f"monocular method must be one of {METHODS}, got {monocular!r}")
         self.monocular, self.head_size = monocular, head_size
-        self.target = target
-        self.is_file = not isinstance(target, int)
+        self.is_file = not isinstance(target, (int, np.integer))
+        self.target = target if self.is_file else _webcam_index(int(target))
         self.name = f"video file {target}" if self.is_file else f"webcam {target}"
         self.ipd, self.fov, self.intrinsics, self.model_dir = ipd, fov, intrinsics, model_dir
+        self.report = report if report is not None else (
+            lambda line: print(line, file=sys.stderr, flush=True))
         self.cap = None
-        self.estimator = None
+        self.estimator = estimator
+        self.frame_count = 0  # the header's frame count of a file (0: unknown)
 
     def open(self) -> None:
         try:
@@ -602,18 +689,38 @@ class VideoSource(Source):
         self.cap = cap
         self._first = frame
         h, w = frame.shape[:2]
-        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-        self.rate = fps if fps > 0 else None
-        intr = self.intrinsics if self.intrinsics is not None else intrinsics_from_fov(
-            w, h, self.fov)
-        ipd = DEFAULT_IPD if self.ipd is None else self.ipd
-        head = DEFAULT_HEAD_SIZE if self.head_size is None else self.head_size
-        try:
-            self.estimator = _with_models(lambda: MonocularHeadPose(
-                intr, ipd, method=self.monocular, head_size=head, model_dir=self.model_dir))
-        except (ImportError, SourceError) as e:  # a missing model or onnxruntime
+        if self.intrinsics is not None and (int(self.intrinsics.width),
+                                            int(self.intrinsics.height)) != (w, h):
             self.close()
-            raise SourceError(str(e)) from None
+            raise SourceError(f"{self.name}: the intrinsics are for {self.intrinsics.width}x"
+                              f"{self.intrinsics.height} images, the frames are {w}x{h}")
+        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        plausible = math.isfinite(fps) and VIDEO_RATES[0] <= fps <= VIDEO_RATES[1]
+        if self.is_file:
+            count = float(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0.0)
+            self.frame_count = int(count) if math.isfinite(count) and count > 0 else 0
+            self._stamps = plausible  # the stamps share the header's time base
+            self._pos_msec = cv2.CAP_PROP_POS_MSEC
+            self._stamp0 = self._stamp()
+            if not plausible:
+                self.report(f"{self.name}: warning: the frame rate in its header ({fps:g} fps) "
+                            f"is outside {VIDEO_RATES[0]:g}-{VIDEO_RATES[1]:g} fps; taken as "
+                            f"unknown, playing it at {DEFAULT_VIDEO_RATE:g} fps")
+            self.rate = fps if plausible else DEFAULT_VIDEO_RATE
+        else:
+            self.rate = fps if plausible else None
+        if self.estimator is None:
+            intr = self.intrinsics if self.intrinsics is not None else intrinsics_from_fov(
+                w, h, self.fov)
+            ipd = DEFAULT_IPD if self.ipd is None else self.ipd
+            head = DEFAULT_HEAD_SIZE if self.head_size is None else self.head_size
+            try:
+                self.estimator = _with_models(lambda: MonocularHeadPose(
+                    intr, ipd, method=self.monocular, head_size=head,
+                    model_dir=self.model_dir))
+            except (ImportError, SourceError) as e:  # a missing model or onnxruntime
+                self.close()
+                raise SourceError(str(e)) from None
         self.estimator.process(frame, 0.0)  # warm-up
         self.estimator.reset()
 
@@ -630,30 +737,67 @@ class VideoSource(Source):
             if not ok:
                 raise SourceError(f"{self.name}: the camera stopped delivering frames")
 
+    def _stamp(self) -> float:
+        """The time of the frame just grabbed, s (OpenCV's, NaN when it gives none)."""
+        try:
+            return float(self.cap.get(self._pos_msec)) / 1e3
+        except (TypeError, ValueError):
+            return float("nan")
+
+    def _next_time(self, t_prev: float, raw_prev: float, period: float) -> tuple[float, float]:
+        """``(play time, raw stamp)`` of the frame just grabbed: the previous play time plus
+        the step of the stream's own stamps when that step is a plausible frame interval,
+        else plus ``period``."""
+        raw = self._stamp() if self._stamps else float("nan")
+        step = raw - raw_prev
+        if math.isfinite(step) and 0.5 / VIDEO_RATES[1] <= step <= 2.0 / VIDEO_RATES[0]:
+            return t_prev + step, raw
+        return t_prev + period, raw
+
     def _run_file(self, clock, t0, stop, emit) -> None:
-        period = 1.0 / (self.rate or 30.0)
-        frame, index = self._first, 0
+        """Each frame at its time; a frame is skipped, undecoded (``grab``), when the next one
+        is already due, except the last one; every frame of the file is either delivered or
+        counted as lost."""
+        period = 1.0 / self.rate
+        count = self.frame_count
+        frame, index, t_rel, raw = self._first, 0, 0.0, self._stamp0
+        skipped = 0
         while not stop.is_set():
-            clock.sleep_until(t0 + index * period, stop)
-            if stop.is_set():
+            # frame `index` (decoded, or only grabbed when frame is None) plays at t0 + t_rel
+            last = count > 0 and index >= count - 1
+            if not last and clock.now() >= t0 + t_rel + period - 1e-9:
+                skipped += 1  # late: the next frame is due already
+            else:
+                if frame is None:
+                    ok, frame = self.cap.retrieve()
+                    frame = frame if ok else None
+                clock.sleep_until(t0 + t_rel, stop)
+                if stop.is_set():
+                    return
+                if frame is None:  # grabbed but not decodable: a lost frame, go on
+                    self._lost(t0 + t_rel, skipped + 1, emit)
+                else:
+                    emit(self._process(clock, t0, t0 + t_rel, frame, skipped))
+                skipped = 0
+            if not self.cap.grab():  # the end of the file, or a read error before it
+                if index + 1 < count:
+                    self._read_error(index + 1, count)
+                self._lost(t0 + t_rel, skipped, emit)
                 return
-            due = math.floor((clock.now() - t0) / period + 1e-9)
-            skipped = 0
-            while index < due:  # late: skip frames (grab does not decode them into arrays)
-                if not self.cap.grab():
-                    return
-                index += 1
-                skipped += 1
-                frame = None
-            if frame is None:
-                ok, frame = self.cap.retrieve()
-                if not ok:
-                    return
-            emit(self._process(clock, t0, t0 + index * period, frame, skipped))
-            ok, frame = self.cap.read()
             index += 1
-            if not ok:
-                return
+            frame = None
+            t_rel, raw = self._next_time(t_rel, raw, period)
+
+    def _read_error(self, frames: int, count: int) -> None:
+        self.report(f"{self.name}: warning: video ended at frame {frames} of {count} "
+                    "(read error)")
+
+    def _lost(self, t: float, frames: int, emit) -> None:
+        """Count ``frames`` as lost (skipped at the end of the replay, or not decodable): one
+        measurement without a pose (``NO_FRAME``) carrying the others as dropped."""
+        if frames > 0:
+            p, q = _nan_pose()
+            emit(Measurement(t, p, q, "NO_FRAME", 0.0, dropped=frames - 1))
 
     def _process(self, clock, t0: float, t: float, frame, dropped: int) -> Measurement:
         t_work = clock.now()
@@ -822,21 +966,14 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
     spec = str(spec)
     kind, _, arg = spec.partition(":")
     if kind == "synthetic":
-        try:
-            values = [int(v) for v in arg.split(":")] if arg else []
-        except ValueError:
-            values = None
-        if values is None or len(values) > 2 or (values and values[0] < 1):
-            raise SourceError(f"bad synthetic source {spec!r}; use synthetic[:N[:SEED]] "
-                              "(N >= 1 frames)")
-        return SyntheticSource(*values, model_dir=model_dir)
+        return SyntheticSource(*synthetic_spec(spec), model_dir=model_dir)
     if kind == "webcam":
         try:
             index = int(arg) if arg else 0
         except ValueError:
-            raise SourceError(f"bad webcam index {arg!r}; use webcam[:INDEX]") from None
-        return VideoSource(index, ipd=ipd, fov=fov, model_dir=model_dir, monocular=monocular,
-                           head_size=head_size)
+            index = arg
+        return VideoSource(_webcam_index(index), ipd=ipd, fov=fov, model_dir=model_dir,
+                           monocular=monocular, head_size=head_size)
     if kind == "realsense":
         return RealSenseSource(arg or None, model_dir=model_dir)
     if kind == "udp":
@@ -862,6 +999,9 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
     if path.is_file():
         return VideoSource(os.fspath(path), ipd=ipd, fov=fov, model_dir=model_dir,
                            monocular=monocular, head_size=head_size)
+    if path.suffix or os.sep in spec or (os.altsep and os.altsep in spec):
+        # no kind: prefix, and it looks like a file or folder name
+        raise SourceError(f"{spec}: No such file or directory")
     raise SourceError(f"unknown source {spec!r}: use synthetic[:N[:SEED]], an RGB-D folder, "
                       "webcam[:INDEX], a video file, realsense[:SERIAL], poses:FILE or "
                       "udp://[HOST]:PORT")

@@ -120,6 +120,12 @@ BAD_ARGUMENTS = [
      "cannot write a figure as '.xyz'; use one of .png"),
     (["smooth", "FILE", "-o", "OUT.txt", "--config", "NOFOLDER/c.json"], "c.json"),
     (["track-rgbd", "NOFOLDER", "-o", "OUT.tum"], "RGB-D source not found"),
+    # the same check as phjax live's (was an OverflowError traceback / a seedless message)
+    (["track-rgbd", "synthetic:3:99999999999999999999", "-o", "OUT.tum"],
+     "bad synthetic source 'synthetic:3:99999999999999999999': SEED 99999999999999999999 out "
+     "of range; use synthetic[:N[:SEED]] (N >= 1 frames, 0 <= SEED < 2**32)"),
+    (["track-rgbd", "synthetic:3:-1", "-o", "OUT.tum"], "SEED -1 out of range"),
+    (["track-rgbd", "synthetic:0", "-o", "OUT.tum"], "bad synthetic source 'synthetic:0': N 0"),
     (["track-rgbd", "synthetic:2", "-o", "OUT.tum", "--model-dir", "NOFOLDER"],
      "not found in NOFOLDER: pass --model-dir FOLDER (a folder holding the model files"),
     (["smooth", "FILE"], "the following arguments are required: -o/--output"),

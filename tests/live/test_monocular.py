@@ -232,3 +232,153 @@ def test_video_and_webcam_errors(tmp_path, video):
     src.open()
     assert src.estimator.method == "landmarks"
     src.close()
+
+
+# ----------------------------------------------------- video files: pacing, end, checks
+class _StepClock:
+    """A clock whose time moves only by ``sleep_until`` and by the front-end's work."""
+
+    virtual = True
+
+    def __init__(self):
+        self.t = 0.0
+
+    def now(self):
+        return self.t
+
+    def sleep_until(self, t, stop=None):
+        self.t = max(self.t, t)
+
+
+class _FakeMonocular:
+    """A front-end taking ``seconds`` of ``clock`` time per frame; remembers the times."""
+
+    def __init__(self, clock, seconds=0.0):
+        self.clock, self.seconds, self.times = clock, seconds, []
+
+    def process(self, frame, t):
+        from types import SimpleNamespace
+
+        self.clock.t += self.seconds
+        self.times.append(t)
+        return SimpleNamespace(position=np.array([0.0, 0.0, 0.7]),
+                               quaternion=np.array([1.0, 0.0, 0.0, 0.0]),
+                               status=SimpleNamespace(name="OK"), confidence=1.0)
+
+    def reset(self):
+        self.times.clear()
+
+
+def _write_avi(path, n, fps, size=(64, 48)):
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, size)
+    assert w.isOpened()
+    for i in range(n):
+        f = np.full((size[1], size[0], 3), 40 + 5 * i, np.uint8)
+        f[:, : i + 1] = 255
+        w.write(f)
+    w.release()
+    return path
+
+
+def _set_avi_rate(path, scale, rate):
+    """Patch an AVI's header frame rate to ``rate / scale`` fps (OpenCV writes none < 1)."""
+    import struct
+
+    d = bytearray(path.read_bytes())
+    i = d.find(b"strh")
+    struct.pack_into("<II", d, i + 8 + 4 + 4 + 4 + 2 + 2 + 4, scale, rate)
+    us = int(1e6 * scale / rate) % 2**32 if rate else 0
+    struct.pack_into("<I", d, d.find(b"avih") + 8, us)
+    path.write_bytes(bytes(d))
+
+
+def _play(src, seconds=0.0, stamps=None):
+    """Open ``src`` with a fake front-end, run it on a step clock; the measurements.
+    ``stamps``: the stream's time of each frame after the first, s (instead of OpenCV's)."""
+    clock = _StepClock()
+    src.estimator = _FakeMonocular(clock, seconds)
+    src.open()
+    if stamps is not None:
+        src._stamp = iter(stamps).__next__
+    got = []
+    try:
+        src.run(clock, 0.0, __import__("threading").Event(), got.append)
+    finally:
+        src.close()
+    return got
+
+
+@pytest.mark.parametrize("scale, rate", [(1, 1000), (1, 1_000_000), (1_000_000, 1), (1, 241)])
+def test_a_video_header_rate_outside_1_to_240_fps_plays_at_30_with_a_warning(tmp_path, scale,
+                                                                              rate):
+    """1000 fps gave 3 frames and 50 lost of 60, 1e6 fps no frame at all, 1e-6 fps hung after
+    the first frame: the header's rate (and the stamps in its time base) are not trusted."""
+    path = _write_avi(tmp_path / "v.avi", 12, 30)
+    _set_avi_rate(path, scale, rate)
+    lines = []
+    got = _play(VideoSource(str(path), report=lines.append))
+    assert len(lines) == 1 and "outside 1-240 fps" in lines[0] and "30 fps" in lines[0], lines
+    assert [m.status for m in got] == ["OK"] * 12 and sum(m.dropped for m in got) == 0
+    np.testing.assert_allclose([m.t for m in got], np.arange(12) / 30.0, atol=1e-9)
+
+
+def test_a_video_plays_at_its_own_timestamps_and_counts_every_frame(tmp_path):
+    """6 fps: the stream's stamps; a front-end slower than the frames skips the late ones, and
+    the frames skipped at the end of the file count as lost (every frame is delivered or
+    counted; the last one is delivered)."""
+    path = _write_avi(tmp_path / "v.avi", 12, 6)
+    lines = []
+    got = _play(VideoSource(str(path), report=lines.append))
+    assert lines == []
+    np.testing.assert_allclose([m.t for m in got], np.arange(12) / 6.0, atol=1e-6)
+    # steps of the stamps that are no frame interval (0, NaN, over 2 s) are one period
+    stamps = [0.1, 0.2, 0.3, 1.3, 1.4, 1.4, 1.5, np.nan, 1.7, 20.0, 20.1]
+    got = _play(VideoSource(str(path), report=lines.append), stamps=stamps)
+    p = 1 / 6
+    np.testing.assert_allclose([m.t for m in got], [0, 0.1, 0.2, 0.3, 1.3, 1.4, 1.4 + p,
+                                                    1.5 + p, 1.5 + 2 * p, 1.5 + 3 * p,
+                                                    1.5 + 4 * p, 1.6 + 4 * p], atol=1e-9)
+    path = _write_avi(tmp_path / "w.avi", 20, 30)
+    got = _play(VideoSource(str(path), report=lines.append), seconds=0.1)  # 3 frame periods
+    delivered = [m for m in got if m.status == "OK"]
+    assert 4 <= len(delivered) <= 8
+    assert len(delivered) + sum(m.dropped for m in got) + sum(
+        m.status == "NO_FRAME" for m in got) == 20
+    assert delivered[-1].t == pytest.approx(19 / 30) and lines == []
+
+
+def test_a_video_read_error_before_its_end_is_one_warning_line(tmp_path):
+    """A file cut in the middle ended silently (exit 0) at its last readable frame."""
+    path = _write_avi(tmp_path / "v.avi", 30, 30)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    lines = []
+    got = _play(VideoSource(str(path), report=lines.append))
+    n = len(got)
+    assert 0 < n < 30 and all(m.status == "OK" for m in got)
+    assert lines == [f"video file {path}: warning: video ended at frame {n} of 30 (read error)"]
+
+
+def test_video_intrinsics_of_another_image_size_are_refused(tmp_path):
+    """K of a 640x480 camera on 64x48 frames made every frame INVALID_INPUT, silently."""
+    path = _write_avi(tmp_path / "v.avi", 3, 30)
+    k = CameraIntrinsics(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+    src = VideoSource(str(path), intrinsics=k, estimator=_FakeMonocular(_StepClock()))
+    with pytest.raises(SourceError, match="intrinsics are for 640x480 images, the frames are "
+                       "64x48"):
+        src.open()
+    assert src.cap is None  # released
+    k = CameraIntrinsics(fx=50.0, fy=50.0, cx=31.5, cy=23.5, width=64, height=48)
+    assert len(_play(VideoSource(str(path), intrinsics=k))) == 3
+
+
+@pytest.mark.parametrize("index", [-1, 100, 99999999999])
+def test_a_webcam_index_outside_0_to_99_is_refused_before_opencv(index):
+    """webcam:-1 crashed OpenCV (signal 11) without a camera; 99999999999 was OpenCV's 'Bad
+    argument' twice prefixed with 'error:'."""
+    with pytest.raises(SourceError, match=r"bad webcam index .*; use webcam\[:INDEX\] with "
+                       "INDEX 0-99"):
+        open_source(f"webcam:{index}", worker=False)
+    with pytest.raises(SourceError, match="INDEX 0-99"):
+        VideoSource(index)
+    assert VideoSource(99).target == 99

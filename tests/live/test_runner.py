@@ -643,6 +643,37 @@ def test_synthetic_frames_are_rendered_once_into_the_cache(tmp_path):
     assert short[:4] != long[:4]
 
 
+def test_a_frame_cache_that_is_a_file_renders_in_memory_with_one_warning(tmp_path,
+                                                                         monkeypatch):
+    """$PHJAX_FRAME_CACHE naming a file was 'error: NotADirectoryError ...', exit 2."""
+    from phjax.live._sources import FRAME_CACHE_ENV
+
+    not_a_folder = tmp_path / "file"
+    not_a_folder.write_text("x")
+    monkeypatch.setenv(FRAME_CACHE_ENV, str(not_a_folder))
+    lines = []
+    src = SyntheticSource(1, 1, estimator=_SlowEstimator(0.0), report=lines.append)
+    src.open()
+    assert src.cache is None and src.rendered == 1 and src.sequence[0].color.shape[2] == 3
+    assert f"${FRAME_CACHE_ENV}={not_a_folder} is unusable" in lines[0], lines
+    assert "in memory" in lines[0] and "in memory" in lines[1] and len(lines) == 3, lines
+    assert not_a_folder.read_text() == "x"
+
+
+@pytest.mark.parametrize("spec", ["synthetic:3:-1", "synthetic:3:4294967296",
+                                  "synthetic:3:99999999999999999999"])
+def test_a_synthetic_seed_outside_0_to_2_32_is_one_line(spec):
+    """A huge seed was an OverflowError, a negative one a message not naming the seed."""
+    seed = spec.split(":")[2]
+    with pytest.raises(SourceError, match=rf"bad synthetic source '{spec}': SEED {seed} out "
+                       r"of range; use synthetic\[:N\[:SEED\]\] \(N >= 1 frames, 0 <= SEED < "
+                       r"2\*\*32\)"):
+        open_source(spec, worker=False)
+    with pytest.raises(SourceError, match=f"SEED {seed} out of range"):
+        SyntheticSource(3, int(seed))
+    assert open_source("synthetic:3:4294967295", worker=False).seed == 2**32 - 1
+
+
 # ------------------------------------------------------------------------------- status
 def test_status_line_reports_input_output_lost_age_and_lookahead():
     import re
