@@ -16,6 +16,7 @@ Commands:
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 import warnings
@@ -194,6 +195,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _quiet_opencv() -> None:
+    """OpenCV's and FFmpeg's own log lines (``[ WARN ...] setPreferableTarget ...`` on every
+    vision run, ``moov atom not found`` before the command's one-line error) off, unless the
+    user set their levels; set before ``cv2`` is imported, and inherited by the worker
+    process."""
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``phjax`` command; returns the exit status.
 
@@ -210,6 +220,8 @@ def main(argv: list[str] | None = None) -> int:
         return stop.code if isinstance(stop.code, int) else 2
     from ..io import TrajectoryWarning
     from ._cache import cache_disabled, compilation_cache
+
+    _quiet_opencv()
 
     enabled = not cache_disabled(args.no_cache)
     with warnings.catch_warnings(), compilation_cache(enabled, args.command) as cache:

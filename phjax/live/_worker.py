@@ -348,7 +348,9 @@ def _main(fd: int) -> int:
     except SystemExit:
         raise
     except BaseException as e:  # noqa: BLE001 - reported to the parent in one line
-        msg = str(e) if isinstance(e, SourceError) else _one_line(e)
+        # a user error (bad file, bad option: ValueError, OSError) reads as in the command
+        # line's own process; anything else names its type and place
+        msg = str(e) if isinstance(e, (ValueError, OSError)) else _one_line(e)
         send(["error", msg.strip().splitlines()[0] if msg.strip() else type(e).__name__])
         return 1
     finally:

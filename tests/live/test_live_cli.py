@@ -162,6 +162,34 @@ def test_bad_input_process_has_no_traceback(tmp_path):
     assert "Traceback" not in r.stderr
 
 
+def test_process_errors_are_one_line_without_library_logs(tmp_path, model_cache):  # noqa: F811
+    """What reached stderr besides the one-line error: FFmpeg's ``moov atom not found`` before
+    "cannot open video file", OpenCV's ``[ WARN ...] setPreferableTarget`` on every vision run,
+    and the worker's errors as ``RGBDFormatError: ... (rgbd_io.py:256)`` where track-rgbd says
+    the message alone (found by probing)."""
+    import cv2
+
+    garbage = tmp_path / "garbage.mp4"
+    garbage.write_bytes(np.random.default_rng(0).integers(0, 256, 4096, np.uint8).tobytes())
+    folder = tmp_path / "rgbd"
+    for sub in ("color", "depth"):
+        (folder / sub).mkdir(parents=True)
+    for i in range(1, 5):
+        cv2.imwrite(str(folder / "color" / f"{i}.png"), np.full((48, 64, 3), 90, np.uint8))
+        cv2.imwrite(str(folder / "depth" / f"{i}.png"), np.full((48, 64), 900, np.uint16))
+    (folder / "color" / "3.png").write_text("not an image")
+    for source in (garbage, folder):
+        r = subprocess.run([sys.executable, "-m", "phjax", "live", str(source), "--quiet",
+                            "--duration", "20", "--model-dir", str(model_cache)],
+                           capture_output=True, text=True, timeout=300, check=False)
+        lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+        errors = [ln for ln in lines if "error" in ln.lower()]
+        assert r.returncode == 2 and len(errors) == 1, r.stderr
+        assert errors[0].startswith("phjax live: error:"), r.stderr
+        assert ".py:" not in errors[0] and "FormatError" not in errors[0], r.stderr
+        assert not [ln for ln in lines if "WARN" in ln or "moov" in ln], r.stderr
+
+
 # exec the command with SIGINT ignored (an ignored disposition survives exec; no preexec_fn,
 # which is unsafe beside the test runner's threads)
 _EXEC_IGNORING_SIGINT = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
