@@ -211,6 +211,8 @@ def quat_hemisphere_continuity(q: Float[ArrayLike, "... n 4"]) -> Float[Array, "
     computed with a cumulative product (no Python loop). The first element is left unchanged.
     """
     q = _quat(q)
+    if q.ndim < 2:
+        raise ValueError(f"q must be a sequence of quaternions, shape (..., n, 4), got {q.shape}")
     dots = jnp.sum(q[..., 1:, :] * q[..., :-1, :], axis=-1)
     s = jnp.where(dots < 0, -1, 1).astype(q.dtype)
     s = jnp.concatenate([jnp.ones_like(s[..., :1]), jnp.cumprod(s, axis=-1)], axis=-1)

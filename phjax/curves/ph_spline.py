@@ -263,7 +263,9 @@ def _core(dp, ds, de, settings):
     residual = jnp.where(use2, r2, r1)
     feasible = residual <= tol
     _, stationarity = _multipliers(Z, constraints)
-    status = jnp.where(use2 & feasible & (stationarity <= tol), int(SplineStatus.SUCCESS),
+    # (judged on the point returned, whichever phase gave it: straight-line data are fairest
+    # at the feasible start already, fairness 0, and were NOT_FAIREST)
+    status = jnp.where(feasible & (stationarity <= tol), int(SplineStatus.SUCCESS),
                        jnp.where(feasible, int(SplineStatus.NOT_FAIREST),
                                  jnp.where(ls.result == optx.RESULTS.max_steps_reached,
                                            int(SplineStatus.MAX_STEPS),
@@ -374,8 +376,11 @@ def ph_spline(
     rtol = (1e-10 if f64 else 1e-5) if rtol is None else rtol
     atol = (1e-12 if f64 else 1e-6) if atol is None else atol
     z3 = jnp.zeros(3, pts.dtype)
-    ds = z3 if d_start is None else jnp.asarray(d_start, pts.dtype).reshape(3)
-    de = z3 if d_end is None else jnp.asarray(d_end, pts.dtype).reshape(3)
+    for name, d in (("d_start", d_start), ("d_end", d_end)):
+        if d is not None and np.shape(d) != (3,):
+            raise ValueError(f"ph_spline: {name} must be a 3-vector, got shape {np.shape(d)}")
+    ds = z3 if d_start is None else jnp.asarray(d_start, pts.dtype)
+    de = z3 if d_end is None else jnp.asarray(d_end, pts.dtype)
     args = (d_start is not None, d_end is not None, int(max_steps), float(rtol), float(atol))
     if pts.dtype != jnp.float64 and jax.config.jax_enable_x64:
         # optimistix's Levenberg-Marquardt promotes its damping to float64 when x64 is on and

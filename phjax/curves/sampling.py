@@ -198,8 +198,10 @@ def sample_chunks(
         (``t`` is ``None`` unless ``parameters``), equal to :func:`sample`'s rows.
     """
     _check_by(by)
-    if int(n) < 1 or int(chunk) < 1 or int(buffers) < 1:
-        raise ValueError(f"n, chunk and buffers must be >= 1, got {n}, {chunk}, {buffers}")
+    for name, value in (("chunk", chunk), ("buffers", buffers)):
+        if isinstance(value, bool) or int(value) != value or int(value) < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    n, chunk, buffers = _check_n(n), int(chunk), int(buffers)
     b = curves.batch_shape
     flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(b):]), curves)
     total = flat.control_points.shape[0]

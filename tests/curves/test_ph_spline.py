@@ -133,6 +133,12 @@ def test_collinear_equally_spaced_points_give_a_straight_line():
     curves, sol = ph_spline(pts)
     check_spline(curves, sol, pts)
     np.testing.assert_allclose(np.asarray(curves.curvature(np.linspace(0, 1, 9))), 0, atol=1e-9)
+    # fairest already at the feasible start (fairness 0): SUCCESS (three or four collinear
+    # points, also unequally spaced, were NOT_FAIREST with stationarity 0, found by probing)
+    for line in ([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0.0, 0, 0], [1, 1, 1], [2, 2, 2], [3, 3, 3]],
+                 [[0.0, 0, 0], [1, 0, 0], [3, 0, 0]], pts):
+        _, sol = ph_spline(np.asarray(line))
+        assert int(sol.status) == SplineStatus.SUCCESS and float(sol.stationarity) <= 1e-6
 
 
 def test_real_trajectory_windows_tum_and_float32():

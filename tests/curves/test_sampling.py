@@ -79,3 +79,20 @@ def test_sample_chunks_reuses_buffers():
     assert first.is_deleted()
     with pytest.raises(ValueError, match=">= 1"):
         next(pj.sample_chunks(curves, 5, 0))
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda: pj.pad_recordings([np.arange(3.0)], multiple_of=0), "multiple_of must be"),
+    (lambda: pj.pad_recordings([np.arange(3.0)] * 3, multiple_of=2.5), "multiple_of must be"),
+    (lambda: pj.ph_spline(jnp.array([[0.0, 0, 0], [1, 0, 0], [2, 1, 0]]), d_start=[1.0, 0]),
+     "d_start must be a 3-vector"),
+    (lambda: list(pj.sample_chunks(_curves((2,)), 2.5, 1)), "n must be an integer"),
+    (lambda: list(pj.sample_chunks(_curves((2,)), 4, 1.5)), "chunk must be an integer"),
+    (lambda: pj.quat_hemisphere_continuity(jnp.array([1.0, 0, 0, 0])),
+     "sequence of quaternions"),
+])
+def test_bad_arguments_name_themselves(call, message):
+    """Found by probing: ZeroDivisionError, a silent round-down of 2.5, reshape and JAX shape
+    TypeErrors, an IndexError; each is now a ValueError naming the argument."""
+    with pytest.raises(ValueError, match=message):
+        call()
