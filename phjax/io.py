@@ -28,7 +28,8 @@ Formats
 ``read_tum``              TUM RGB-D text: ``t tx ty tz qx qy qz qw`` (space separated, ``#``
                           comments); ``t`` seconds, ``t*`` metres, quaternion **scalar last**.
 ``read_euroc``            EuRoC / TUM-VI CSV: ``t, px, py, pz, qw, qx, qy, qz`` with a ``#`` header;
-                          ``t`` integer **nanoseconds**, metres, quaternion **scalar first**.
+                          ``t`` integer **nanoseconds**, metres, quaternion **scalar first**;
+                          also EuRoC's 17-column state estimate (velocity, biases ignored).
 ``read_csv``              phjax plain CSV with a header naming the columns ``t,x,y,z,qw,qx,qy,qz``
                           (any order; ``x,y,z`` may be omitted together); seconds, metres, wxyz.
 ``read_corbillon``        Corbillon et al. (MMSys 2018) head traces: header
@@ -329,8 +330,14 @@ def _canonicalise(t: np.ndarray, p: np.ndarray, q: np.ndarray, source: str) -> T
     q = np.where(lost[:, None], np.nan, q)
     if not np.all(lost):  # continuity across lost frames: between consecutive valid rows
         qv = q[~lost]
-        qv = qv / np.max(np.abs(qv), axis=-1, keepdims=True)  # no overflow in the norm
-        q[~lost] = _np_hemisphere(qv / np.linalg.norm(qv, axis=-1, keepdims=True))
+        # quaternions already unit to rounding (every file phjax writes) are kept as they are,
+        # so that reading a written file gives back every float (normalising again moves them
+        # by up to 2e-16); the others are normalised (scaled first: no overflow in the norm)
+        with np.errstate(over="ignore"):  # huge components: not unit, normalised below
+            unit = np.abs(np.sum(qv * qv, axis=-1) - 1) <= 8 * np.finfo(np.float64).eps
+        scaled = qv / np.max(np.abs(qv), axis=-1, keepdims=True)
+        normed = scaled / np.linalg.norm(scaled, axis=-1, keepdims=True)
+        q[~lost] = _np_hemisphere(np.where(unit[:, None], qv, normed))
     return Trajectory(
         np.ascontiguousarray(t, dtype=np.float64),
         np.ascontiguousarray(p, dtype=np.float64),
@@ -391,8 +398,14 @@ def _split_csv(s: str) -> list[str]:
     return [tok.strip() for tok in s.split(",")]
 
 
+#: columns of EuRoC's ``state_groundtruth_estimate0/data.csv``: the 8 of the pose, then
+#: velocity (3), gyroscope bias (3) and accelerometer bias (3)
+_EUROC_STATE_COLUMNS = 17
+
+
 def read_euroc(path: PathLike) -> Trajectory:
-    """Read a EuRoC / TUM-VI ground-truth CSV ``t[ns], px, py, pz, qw, qx, qy, qz``.
+    """Read a EuRoC / TUM-VI ground-truth CSV ``t[ns], px, py, pz, qw, qx, qy, qz`` (or
+    EuRoC's 17-column state estimate, whose velocity and bias columns are ignored).
 
     Arguments:
         path: CSV file; lines starting with ``#`` (the header) are skipped.
@@ -405,6 +418,14 @@ def read_euroc(path: PathLike) -> Trajectory:
     data = _data_lines(_read_lines(path))
     linenos = [ln for ln, _ in data]
     rows = [_split_csv(s) for _, s in data]
+    if rows and len(rows[0]) == _EUROC_STATE_COLUMNS:
+        # the state estimate (state_groundtruth_estimate0/data.csv): the pose, then velocity
+        # and IMU biases, which a trajectory has no use for
+        for ln, r in zip(linenos, rows):
+            if len(r) != _EUROC_STATE_COLUMNS:
+                raise _err(path, ln, f"expected {_EUROC_STATE_COLUMNS} columns (EuRoC state "
+                                     f"estimate: pose, velocity, biases), found {len(r)}")
+        rows = [r[:len(_EUROC_NAMES)] for r in rows]
     a = _float_table(path, linenos, rows, _EUROC_NAMES)
     t = a[:, 0] * 1e-9
     try:  # exact integer nanoseconds when every timestamp is an integer literal
@@ -812,7 +833,7 @@ def detect_format(path: PathLike) -> str:
         s = data[0]
         if "," in s:
             toks = _split_csv(s)
-            if len(toks) == 8 and all(map(_is_number, toks)):
+            if len(toks) in (8, _EUROC_STATE_COLUMNS) and all(map(_is_number, toks)):
                 if toks[0].lstrip("+-").isdigit():
                     return "euroc"
             elif {"t", "qw", "qx", "qy", "qz"} <= {c.lower() for c in toks}:
