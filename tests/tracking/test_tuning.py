@@ -504,7 +504,10 @@ def test_nothing_to_tune_against_is_an_error():
 
     t, p, q = _ground_truth()
     thin = slice(None, None, 60)  # 2 Hz ground truth, gaps of 0.5 s > the 0.1 s asked for
-    with pytest.raises(ValueError, match="nothing to tune against"):
+    from phjax.io import TrajectoryWarning
+
+    with pytest.raises(ValueError, match="nothing to tune against"), \
+            pytest.warns(TrajectoryWarning):  # sampled at 2 Hz; 1 % of the samples scored
         tuning.prepare_recordings([(t[thin], p[thin], q[thin])], max_gt_gap=0.1)
     still = (t, np.zeros_like(p), np.tile([1.0, 0, 0, 0], (t.size, 1)))
     sensor = pj.SensorModel(sigma_p=0.0, sigma_r=0.0, dropout=0.0)
