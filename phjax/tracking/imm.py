@@ -288,9 +288,16 @@ def _mixture_innovation(log_cbar, ys, ss):
 
 
 def _mode_update(log_cbar, loglik, valid):
+    """Posterior log mode probabilities. A measurement no model can explain (every likelihood
+    -inf or NaN: a garbage pose of 1e18 m in float32, or an innovation covariance that rounding
+    left indefinite) leaves the predicted probabilities as they are: normalising it gave
+    -inf - (-inf) = NaN, and the probabilities stayed NaN for good."""
     ll = jnp.where(valid, loglik, 0)
+    ll = jnp.where(jnp.isnan(ll), -jnp.inf, ll)
     a = log_cbar + ll
-    return a - logsumexp(a), ll
+    norm = logsumexp(a)
+    ok = jnp.isfinite(norm)
+    return jnp.where(ok, a - jnp.where(ok, norm, 0), log_cbar), jnp.where(ok, ll, 0)
 
 
 def imm_linear_step(

@@ -44,8 +44,10 @@ are symmetrised.
 
 Conventions and behaviour:
 
-* ``dt = t - state.t`` is clamped at 0: predicting to an earlier (or NaN) time is a no-op and the
-  state time never decreases. A late measurement is therefore applied at ``state.t``.
+* ``dt = t - state.t`` is clamped to ``[0, MAX_PREDICT_STEP]`` (60 s): predicting to an
+  earlier (or NaN) time is a no-op and the state time never decreases (a late measurement is
+  therefore applied at ``state.t``); a longer gap is modelled as 60 s of motion. The orientation
+  error covariance has a ceiling (:data:`ROT_STD_CEILING`: pi rad, 4 pi rad/s).
 * Missing data: a position with any NaN (or inf) skips the position update; a quaternion with any
   NaN/inf or zero norm skips the orientation update. Selection uses ``jnp.where`` only, so every
   function is jittable, vmappable and has finite gradients (w.r.t. the noise parameters) with
@@ -389,10 +391,20 @@ def _rot_matrices(rot_process_noise, w, dt):
     return f, _sym(q)
 
 
+#: the longest step (s) one prediction models: the state's time advances over any gap, but
+#: the motion and the covariance growth over a longer one are those of this step. After a day
+#: without frames the constant-velocity prediction had put the position 14 km away, with a
+#: covariance whose float32 update could not bring it back.
+MAX_PREDICT_STEP = 60.0
+
+
 def _clamped_time(state: KalmanState, t):
+    """``(t_new, dt)``: the new time (``t``, or the state's own for a NaN or earlier ``t``)
+    and the step modelled, at most :data:`MAX_PREDICT_STEP`."""
     t = jnp.asarray(t, state.t.dtype)
     t_new = jnp.where(t > state.t, t, state.t)  # NaN or earlier t -> no-op
-    return t_new, (t_new - state.t).astype(state.x.dtype)
+    dt = jnp.minimum(t_new - state.t, MAX_PREDICT_STEP)
+    return t_new, dt.astype(state.x.dtype)
 
 
 def _measurement_validity(position, quaternion, dtype):
@@ -535,11 +547,26 @@ def _linear_predict(x, p, f, q):
     return f @ x, _sym(f @ p @ f.T + q)
 
 
+#: ceilings of the orientation error state's standard deviations: angle (rad) and angular
+#: velocity (rad/s). An angle uncertainty beyond pi says nothing more, and without a ceiling a
+#: long loss (minutes without frames) grew Pr past 1e9 in float32, where rounding left it
+#: indefinite: the IMM's likelihoods became NaN for good (25 min away from the camera) and the
+#: single filter was 18 degrees off 5 s after the face came back.
+ROT_STD_CEILING = (float(np.pi), 4 * float(np.pi))
+
+
 def _rot_predict(q, w, pr, f, qn, dt):
     """Error-state orientation prediction over ``dt`` with the error-state transition ``F`` and
     process noise ``Q`` (:func:`_rot_matrices`): ``q <- exp(w dt) q`` (normalised),
-    ``Pr <- F Pr F^T + Q`` (module docs)."""
-    return quat_normalize(quat_mul(quat_from_rotvec(w * dt), q)), _sym(f @ pr @ f.T + qn)
+    ``Pr <- F Pr F^T + Q`` (module docs), then scaled as ``D Pr D`` with ``D = diag(min(1,
+    ceiling / std))`` where a standard deviation exceeds :data:`ROT_STD_CEILING` (a congruence:
+    ``Pr`` stays positive definite; no change while it is below)."""
+    pr = _sym(f @ pr @ f.T + qn)
+    ceiling = jnp.repeat(jnp.asarray(ROT_STD_CEILING, pr.dtype), 3)
+    var = jnp.diagonal(pr, axis1=-2, axis2=-1)
+    over = var > ceiling * ceiling
+    d = jnp.where(over, ceiling * jax.lax.rsqrt(jnp.where(over, var, 1)), 1)
+    return quat_normalize(quat_mul(quat_from_rotvec(w * dt), q)), pr * d[..., :, None] * d[..., None, :]
 
 
 def _inject(dtheta, q, pr):
@@ -722,6 +749,10 @@ def _filter_scan(name, step, uninitialized, config, times, positions, quaternion
     return states, infos
 
 
+#: the longest step (s) between consecutive states that :func:`rts_smooth` smooths across
+SMOOTH_MAX_GAP = 5.0
+
+
 @jit
 def rts_smooth(config: KalmanConfig, filtered_states: KalmanState) -> KalmanState:
     """Rauch-Tung-Striebel smoother for the output of :func:`kalman_filter`.
@@ -737,7 +768,9 @@ def rts_smooth(config: KalmanConfig, filtered_states: KalmanState) -> KalmanStat
     ``P = Pr_k + C (P^s - Pr^-) C^T``, and ``delta`` is injected into ``(q_k, w_k)`` with the
     same reset Jacobian as the update. Approximations: first-order (linearisation about the
     filtered, not the smoothed, trajectory; no iteration) and first-order covariance transport.
-    Uninitialised filtered states are passed through unchanged.
+    Uninitialised filtered states, and those after the last accepted measurement (nothing to
+    smooth with), are passed through unchanged; a step longer than :data:`SMOOTH_MAX_GAP` (a
+    pause) is not smoothed across: the two sides are smoothed apart.
 
     Arguments:
         config: noise model used for filtering.
@@ -779,9 +812,19 @@ def rts_smooth(config: KalmanConfig, filtered_states: KalmanState) -> KalmanStat
             cur.t, x_s, p_s, q_s, cur.w + delta[3:], pr_s, cur.initialized, cur.last_update,
             cur.part_updates,
         )
-        out = _select(cur.initialized & nxt.initialized, smoothed, cur)
+        # after the last accepted measurement there is nothing to smooth with: the filtered
+        # state is the smoothed one (exactly), and the recursion through a long tail of lost
+        # frames (the size-class padding: 1 s apart) is left out: in float32 its covariances
+        # lost positive-definiteness and the Cholesky's NaN reached every real frame
+        # Likewise across a pause longer than SMOOTH_MAX_GAP: the prediction over it (a
+        # rotation w dt of many turns, a position v dt of km) linearises nothing, and smoothing
+        # with it put the poses before a 5 min pause up to 180 degrees off; the two sides are
+        # smoothed apart
+        informed = (final_update >= cur.t) & (dt <= SMOOTH_MAX_GAP)
+        out = _select(cur.initialized & nxt.initialized & informed, smoothed, cur)
         return out, out
 
+    final_update = last.last_update
     _, sm = lax.scan(body, last, rest, reverse=True)
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]], 0), sm, last)
 
