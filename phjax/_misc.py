@@ -8,8 +8,31 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float
+
+
+def check_number_fields(obj, rules) -> None:
+    """``ValueError`` naming ``Class.field`` for a field that is not a finite number (array)
+    satisfying its rule; traced values are skipped (inside ``jit``, ``vmap`` or ``grad`` they
+    are the caller's to keep valid). ``rules``: ``(name, predicate, " > 0")`` triples, the
+    predicate applied to a float64 array of the value."""
+    cls = type(obj).__name__
+    for name, ok, rule in rules:
+        value = getattr(obj, name)
+        if any_traced(value):
+            continue
+        try:
+            x = None if isinstance(value, (str, bytes)) else np.asarray(value, np.float64)
+        except (TypeError, ValueError):
+            x = None
+        if x is None or not (np.isfinite(x).all() and np.all(ok(x))):
+            raise ValueError(f"{cls}.{name} must be a finite number{rule}, got {value!r}")
+
+
+POSITIVE = (lambda x: x > 0, " > 0")
+FINITE = (lambda x: x == x, "")
 
 
 def any_traced(*trees) -> bool:

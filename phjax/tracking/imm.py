@@ -49,6 +49,7 @@ from jax.nn import logsumexp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._jit import jit
+from .._misc import FINITE, POSITIVE, check_number_fields
 from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize
 from .kalman import (
     _block,
@@ -142,6 +143,10 @@ class IMMConfig(eqx.Module):
             if not isinstance(m, ConstantVelocity):
                 raise TypeError("rotation models must be ConstantVelocity models, got "
                                  f"{type(m).__name__}")
+        check_number_fields(self, [("log_switch_rate", *FINITE)] + [
+            (name, *POSITIVE) for name in ("pos_meas_noise", "rot_meas_noise",
+                                           "init_pos_vel_std", "init_pos_acc_std",
+                                           "init_rot_vel_std")])
 
     @property
     def order(self) -> int:

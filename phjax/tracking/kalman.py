@@ -72,7 +72,7 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._jit import jit
-from .._misc import dot_last
+from .._misc import POSITIVE, check_number_fields, dot_last
 from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
 
 __all__ = [
@@ -92,6 +92,11 @@ __all__ = [
 _ORDER = {"cv": 2, "ca": 3}
 # Defaults for the highest-derivative spectral density, see the KalmanConfig docstring.
 _DEFAULT_POS_Q = {"cv": 0.03, "ca": 20.0}
+
+
+#: the noise and initial-uncertainty fields of :class:`KalmanConfig` (all > 0)
+_NOISE_FIELDS = ("pos_process_noise", "pos_meas_noise", "rot_process_noise", "rot_meas_noise",
+                 "init_pos_vel_std", "init_pos_acc_std", "init_rot_vel_std")
 
 
 class KalmanConfig(eqx.Module):
@@ -149,6 +154,8 @@ class KalmanConfig(eqx.Module):
             raise ValueError(f"KalmanConfig.gate_reset must be >= 0 s, got {self.gate_reset}")
         if self.pos_process_noise is None:
             self.pos_process_noise = _DEFAULT_POS_Q[self.model]
+        # (NaN, 0 or negative noise gave NaN poses, silently)
+        check_number_fields(self, [(name, *POSITIVE) for name in _NOISE_FIELDS])
 
     @property
     def order(self) -> int:

@@ -21,8 +21,10 @@ import math
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .._misc import check_number_fields
 from .kalman import _pos_matrices
 
 __all__ = ["ConstantAcceleration", "ConstantVelocity", "MotionModel"]
@@ -32,6 +34,10 @@ class _Model(eqx.Module):
     log_q: float
 
     order: int = eqx.field(static=True, default=2)
+
+    def __check_init__(self):
+        # (a NaN log_q gave NaN poses, silently; log_q = 100 overflows exp in float32)
+        check_number_fields(self, (("log_q", lambda x: np.abs(x) <= 80, " within +-80"),))
 
     @property
     def q(self) -> Float[Array, ""]:
@@ -76,7 +82,7 @@ class ConstantVelocity(_Model):
     @classmethod
     def from_q(cls, q: float) -> "ConstantVelocity":
         """The model with spectral density ``q`` (> 0)."""
-        return cls(log_q=math.log(q))
+        return cls(log_q=_log_q(q))
 
 
 class ConstantAcceleration(_Model):
@@ -91,7 +97,13 @@ class ConstantAcceleration(_Model):
     @classmethod
     def from_q(cls, q: float) -> "ConstantAcceleration":
         """The model with spectral density ``q`` (> 0)."""
-        return cls(log_q=math.log(q))
+        return cls(log_q=_log_q(q))
+
+
+def _log_q(q) -> float:
+    if not (isinstance(q, (int, float)) and math.isfinite(q) and q > 0):
+        raise ValueError(f"a spectral density q must be a finite number > 0, got {q!r}")
+    return math.log(q)
 
 
 MotionModel = ConstantVelocity | ConstantAcceleration

@@ -24,6 +24,7 @@ Inside ``jit`` / ``scan`` use the pure functions (``phjax.track`` is the whole-r
 from __future__ import annotations
 
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -164,8 +165,19 @@ class TrackerStream:
         return position, quaternion
 
     def set_config(self, config: TrackerConfig) -> None:
-        """Use another config (one of the same structure does not recompile)."""
+        """Use another config (one of the same structure does not recompile).
+
+        Raises:
+            ValueError: a config whose filter has another state (IMM or not, other model
+                counts or orders): its state cannot continue this stream's (start a new
+                stream, or set :attr:`state` from ``tracker_init`` of that config).
+        """
         check_config(config)
+        if hasattr(self, "_leaves") and jax.tree.structure(
+                tracker_init(config, 0.0, self.dtype)) != self._state_def:
+            raise ValueError("set_config: this config's filter state has another structure "
+                             "than the stream's (IMM or not, model count or order); start a "
+                             "new TrackerStream for it")
         leaves, self._config_def = jax.tree.flatten(tracker_config_arrays(config, self.dtype))
         self._update = self._program(_update)
         self._config_leaves = leaves
@@ -184,6 +196,8 @@ class TrackerStream:
         if np.ndim(t) != 0:
             raise ValueError(f"tracker update: t must have shape (), got {np.shape(t)}")
         t = float(t)
+        if not math.isfinite(t):
+            raise ValueError(f"tracker update: t must be finite, got {t}")
         if self.origin is None:
             self.origin = t
         return self._scalar(t - self.origin)

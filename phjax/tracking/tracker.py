@@ -51,7 +51,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._jit import jit
-from .._misc import any_traced
+from .._misc import FINITE, POSITIVE, any_traced, check_number_fields
 from .._np_quat import np_valid_quaternions
 from ..io import TrajectoryWarning
 from .._sizes import unpad_rows
@@ -138,21 +138,9 @@ class TrackerConfig(eqx.Module):
     def __check_init__(self):
         # concrete values only (a traced config, e.g. inside jax.grad, is the caller's to keep
         # valid); a horizon or stop time of 0 divides by zero: NaN poses, not an error
-        for name, ok, rule in (("horizon", lambda x: x > 0, " > 0"),
-                               ("stop_time", lambda x: x > 0, " > 0"),
-                               ("coast_time", lambda x: x >= 0, " >= 0"),
-                               ("adapt", lambda x: x == x, ""),
-                               ("lookahead", lambda x: x == x, "")):
-            value = getattr(self, name)
-            if any_traced(value):
-                continue
-            try:
-                x = None if isinstance(value, (str, bytes)) else np.asarray(value, np.float64)
-            except (TypeError, ValueError):
-                x = None
-            if x is None or not (np.isfinite(x).all() and ok(x).all()):
-                raise ValueError(f"TrackerConfig.{name} must be a finite number{rule}, "
-                                 f"got {value!r}")
+        check_number_fields(self, (("horizon", *POSITIVE), ("stop_time", *POSITIVE),
+                                   ("coast_time", lambda x: x >= 0, " >= 0"),
+                                   ("adapt", *FINITE), ("lookahead", *FINITE)))
 
 
 #: The correction ``c(t)`` = rendered minus predicted pose decays like a critically damped

@@ -256,3 +256,22 @@ def test_epoch_times_in_a_float32_stream_equal_relative_times(meas):
     for x, y in zip(a.sample(epoch + r), b.sample(r)):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=2e-6)
     assert np.isfinite(np.asarray(a.sample(epoch + r)[0])).all()
+
+
+def test_non_finite_times_and_other_filter_structures_are_refused(meas):
+    """Found by probing: a NaN or inf update time became the origin (or a step) and the stream
+    was NaN for good, where track refuses such times; set_config accepted a config of another
+    filter structure (IMM -> single Kalman) and every later update failed deep in JAX."""
+    t, p, q = meas
+    s = pj.TrackerStream(fast_start=False)
+    for bad in (np.nan, np.inf, -np.inf):
+        with pytest.raises(ValueError, match="t must be finite"):
+            s.update(bad, p[0], q[0])
+    assert s.origin is None  # nothing was taken from the bad calls
+    for k in range(5):
+        s.update(t[k], p[k], q[k])
+    with pytest.raises(ValueError, match="another structure"):
+        s.set_config(pj.TrackerConfig(imm=None))
+    s.set_config(pj.TrackerConfig(horizon=0.05))  # same structure: accepted
+    s.update(t[5], p[5], q[5])
+    assert np.isfinite(np.asarray(s.sample(t[5] + 0.01)[0])).all()

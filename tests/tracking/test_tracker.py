@@ -684,6 +684,29 @@ def test_config_values_the_stream_cannot_use_are_refused():
     assert float(g) == 2.0
 
 
+def test_filter_config_values_that_give_nan_poses_are_refused():
+    """Found by probing: NaN or non-positive noise in KalmanConfig / IMMConfig, a NaN switch
+    rate or model log_q, log_q = 100 (exp overflows in float32) all gave 100 % NaN output
+    silently; from_q(0) was a 'math domain error'. Arrays (sweeps) are checked elementwise;
+    traced values are not checked."""
+    from phjax.tracking import IMMConfig, KalmanConfig
+    from phjax.tracking.models import ConstantVelocity
+
+    cases = [(KalmanConfig, {"pos_meas_noise": 0.0}), (KalmanConfig, {"rot_process_noise": -1.0}),
+             (KalmanConfig, {"pos_process_noise": float("nan")}),
+             (KalmanConfig, {"init_rot_vel_std": np.array([1.0, 0.0])}),
+             (IMMConfig, {"log_switch_rate": float("nan")}), (IMMConfig, {"rot_meas_noise": 0.0}),
+             (ConstantVelocity, {"log_q": 100.0}), (ConstantVelocity, {"log_q": float("nan")})]
+    for cls, kw in cases:
+        with pytest.raises(ValueError, match=f"{cls.__name__}.{next(iter(kw))} must be a finite"):
+            cls(**kw)
+    with pytest.raises(ValueError, match="spectral density q must be"):
+        ConstantVelocity.from_q(0.0)
+    KalmanConfig(pos_meas_noise=np.array([0.005, 0.01]))  # a sweep of valid values
+    g = jax.grad(lambda r: KalmanConfig(pos_meas_noise=r).pos_meas_noise * 3.0)(0.005)
+    assert float(g) == 3.0
+
+
 @pytest.mark.parametrize("fn", [pj.track, pj.reconstruct])
 def test_track_and_reconstruct_under_jit_vmap_and_grad(head, fn):
     """Inside a transformation the recording is used as given (no host-side padding): jit and
