@@ -450,3 +450,22 @@ def test_jax_baselines_share_one_program_per_size_class_and_equal_unpadded():
             assert a.shape == b.shape and np.isnan(a).any()  # before the first frame
             np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+
+
+def test_epoch_times_in_float32_equal_relative_times():
+    """Found by probing: with epoch times (1.7e9 s) in the default float32, alpha-beta, One Euro
+    and hold were 180 mm / 120 degrees off the same recording with relative times (float32
+    spacing 128 s there); the Kalman and IMM extrapolations were already exact. Every baseline
+    now runs on times relative to the first one."""
+    import phjax as pj
+
+    t, p, q = pj.synthetic_head_motion(duration=3.0, seed=3)
+    mt, mp, mq = (np.asarray(x, np.float64) for x in pj.simulate_measurements(0, t, p, q))
+    mt = mt - mt[0]
+    r = np.arange(0.05, mt[-1], 1 / 120)
+    for fn in (alpha_beta, one_euro, one_euro_extrapolation, hold):
+        with jax.enable_x64(False):  # the default: float64 NumPy times become float32
+            a = [np.asarray(x, np.float64) for x in fn(mt, mp, mq, r)]
+            b = [np.asarray(x, np.float64) for x in fn(mt + 1.7e9, mp, mq, r + 1.7e9)]
+        assert np.abs(a[0] - b[0]).max() < 1e-4, fn.__name__
+        assert np.degrees(np.asarray(quat_geodesic_distance(a[1], b[1]))).max() < 0.05, fn
