@@ -120,7 +120,7 @@ def _size_classed(jitted):
             # every baseline depends on time differences only
             t = np.asarray(times, np.float64)
             t0 = t[0] if t.size and np.isfinite(t[0]) else 0.0
-            dtype = jnp.asarray(times).dtype
+            dtype = jax.dtypes.canonicalize_dtype(np.asarray(times).dtype)  # (host only)
             args = ((t - t0).astype(dtype), positions, quaternions,
                     (np.asarray(render_times, np.float64) - t0).astype(dtype))
             padded = pad_samples(*args)
