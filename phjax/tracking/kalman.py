@@ -48,7 +48,8 @@ Conventions and behaviour:
   earlier (or NaN) time is a no-op and the state time never decreases (a late measurement is
   therefore applied at ``state.t``); a longer gap is modelled as 60 s of motion. The orientation
   error covariance has a ceiling (:data:`ROT_STD_CEILING`: pi rad, 4 pi rad/s).
-* Missing data: a position with any NaN (or inf) skips the position update; a quaternion with any
+* Missing data: a position with any NaN (or inf, or a component beyond ``max^(1/4)`` of the
+  dtype: 1.4e9 m in float32) skips the position update; a quaternion with any
   NaN/inf or zero norm skips the orientation update. Selection uses ``jnp.where`` only, so every
   function is jittable, vmappable and has finite gradients (w.r.t. the noise parameters) with
   missing data.
@@ -422,7 +423,11 @@ def _measurement_validity(position, quaternion, dtype):
             f"expected position of shape (3,) and quaternion of shape (4,), got {p.shape} and "
             f"{qm.shape} (use jax.vmap for batches)"
         )
-    fin_p, fin_q = jnp.isfinite(p), jnp.isfinite(qm)  # written out: no reduction kernels
+    # a position component beyond max^(1/4) of the dtype (1.4e9 m in float32) is no
+    # measurement either: its innovation's square overflows, and one such frame (1e18 m) made
+    # the IMM's states and probabilities NaN for good
+    bound = float(jnp.finfo(dtype).max) ** 0.25
+    fin_p, fin_q = jnp.isfinite(p) & (jnp.abs(p) <= bound), jnp.isfinite(qm)  # no reductions
     pos_valid = fin_p[0] & fin_p[1] & fin_p[2]
     rot_valid = fin_q[0] & fin_q[1] & fin_q[2] & fin_q[3] & (dot_last(qm, qm) > 0)
     return p, qm, pos_valid, rot_valid
