@@ -40,6 +40,10 @@ def pad_samples(times, positions, quaternions, query_times, *others):
     nothing here reads an invalid row, and repeating the last time keeps the arrays' dtype
     and holds for any query (NaN included).
 
+    Times and queries come back relative to the first sample time, subtracted in their own
+    precision (every caller depends on time differences only; epoch times of 1.7e9 s in the
+    float32 of a jitted call would be 128 s apart).
+
     Returns:
         ``(times (nb,), positions (nb, 3), quaternions (nb, 4), query_times (mb,))`` or ``None``.
     """
@@ -48,6 +52,8 @@ def pad_samples(times, positions, quaternions, query_times, *others):
     t, p, q, r = (np.asarray(x) for x in (times, positions, quaternions, query_times))
     if not all(np.issubdtype(x.dtype, np.floating) for x in (t, p, q, r)):
         return None
+    if t.size and np.isfinite(t[0]):
+        t, r = t - t[0], r - t[0]
     n, m = t.shape[0], r.shape[0]
     dn, dm = size_class(n, MIN_FRAMES) - n, size_class(m, MIN_RENDER) - m
     return (np.concatenate([t, np.full(dn, t[-1], t.dtype)]),

@@ -208,11 +208,7 @@ def interpolate_poses(
     if padded is None:  # traced (or not floating point): the caller's shapes
         return _interpolate_poses(times, positions, quaternions, query_times, max_gap)
     m = shapes[3][0]
-    t_pad, p_pad, q_pad, r_pad = padded
-    if np.isfinite(t_pad[0]):  # relative to the first sample, in the caller's precision: epoch
-        # times (1.7e9 s) in float32 would be rounded to minutes inside
-        t_pad, r_pad = t_pad - t_pad[0], r_pad - t_pad[0]
-    p, q = _interpolate_poses(t_pad, p_pad, q_pad, r_pad, max_gap)
+    p, q = _interpolate_poses(*padded, max_gap)  # (times relative to the first: pad_samples)
     return unpad_rows(p, m), unpad_rows(q, m)
 
 

@@ -115,14 +115,8 @@ def _size_classed(jitted):
         args = (times, positions, quaternions, render_times)
         if not any_traced(args, params):
             _check_inputs(*(np.asarray(x) for x in args))
-            # times relative to the first one, in float64 here: epoch times (1.7e9 s) in the
-            # default float32 are 128 s apart (the baselines were 180 mm / 120 degrees off);
-            # every baseline depends on time differences only
-            t = np.asarray(times, np.float64)
-            t0 = t[0] if t.size and np.isfinite(t[0]) else 0.0
-            dtype = jax.dtypes.canonicalize_dtype(np.asarray(times).dtype)  # (host only)
-            args = ((t - t0).astype(dtype), positions, quaternions,
-                    (np.asarray(render_times, np.float64) - t0).astype(dtype))
+            # (times relative to the first, as pad_samples returns them: with epoch times in
+            # the default float32 the baselines were 180 mm / 120 degrees off)
             padded = pad_samples(*args)
             if padded is not None:
                 m = np.shape(render_times)[0]
