@@ -33,6 +33,7 @@ from jaxtyping import ArrayLike, Float
 from .._np_quat import np_from_rotvec as _np_from_rotvec
 from .._np_quat import np_qconj as _np_qconj
 from .._np_quat import np_qmul as _np_qmul
+from .._np_quat import np_valid_quaternions
 from .._np_quat import np_qnormalize as _np_qnormalize
 from .._np_quat import np_rotvec as _np_rotvec
 
@@ -97,7 +98,7 @@ def _as64(x: ArrayLike) -> np.ndarray:
     orientation: it normalises to nothing) becomes a NaN row, skipped like one."""
     x = np.asarray(x, dtype=np.float64)
     if x.ndim >= 2 and x.shape[-1] == 4:
-        x = np.where(np.sum(x * x, -1, keepdims=True) > 0, x, np.nan)
+        x = np.where(np_valid_quaternions(x)[..., None], x, np.nan)
     return x
 
 

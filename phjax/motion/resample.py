@@ -58,9 +58,14 @@ def ground_truth_max_gap(times: ArrayLike, max_gap: float | None = None) -> floa
     """
     if max_gap is not None:
         return float(max_gap)
+    return max(MIN_GT_GAP, 2.5 * _median_step(times))
+
+
+def _median_step(times) -> float:
+    """The median positive step (s) between sample times (0 without one)."""
     steps = np.diff(np.asarray(times, np.float64))
     steps = steps[np.isfinite(steps) & (steps > 0)]
-    return max(MIN_GT_GAP, 2.5 * float(np.median(steps))) if steps.size else MIN_GT_GAP
+    return float(np.median(steps)) if steps.size else 0.0
 
 
 def warn_sparse_ground_truth(gt_t, render, gp, gq) -> None:
@@ -76,8 +81,7 @@ def warn_sparse_ground_truth(gt_t, render, gp, gq) -> None:
 
     from ..io import TrajectoryWarning
 
-    steps = np.diff(gt_t)
-    step = float(np.median(steps[steps > 0])) if np.any(steps > 0) else 0.0
+    step = _median_step(gt_t)
     if step > 0.05:
         warnings.warn(f"ground truth sampled at {1 / step:.3g} Hz: between its samples it is "
                       "interpolated (linear / slerp), and that error is part of every RMSE",
