@@ -519,6 +519,13 @@ class PHQuintic(eqx.Module):
         sigma, bn2 = self._kappa_parts(t, k)
         return safe_div(2 * safe_sqrt(bn2), sigma)
 
+    def _moving(self, speed, k: int):
+        """Whether ``speed`` (at parameters with ``k`` sample axes) is above ``eps`` of the
+        curve's scale ``|A0|^2 + |A1|^2 + |A2|^2``: below it (a cusp, a resting end) the
+        derivatives are rounding noise."""
+        scale = sum(dot_last(a, a) for a in (self.A0, self.A1, self.A2))
+        return speed > jnp.finfo(self.dtype).eps * self._ex(scale[..., None], k, 1)[..., 0]
+
     def _kappa_parts(self, t, k):
         """``(sigma, |vect(A* A')_yz|^2 / sigma^2)``: the curvature is ``2 sqrt(.) / sigma``.
         In units of the speed, as :meth:`torsion`: the raw quotient's backward pass divides by
@@ -546,12 +553,10 @@ class PHQuintic(eqx.Module):
             rho = 4 * (bn[..., 1] ** 2 + bn[..., 2] ** 2)
             return safe_div(dot_last(jnp.cross(e1, e2), e3), rho * sigma)
 
-        # Near a cusp (speed below eps of the curve's scale) the torsion grows like 1/speed^2 and
-        # its gradient's intermediates overflow (NaN): there the value is kept and the gradient
-        # is zero, the regular formula seeing a well-conditioned stand-in (a unit helix).
-        scale = sum(dot_last(a, a) for a in (self.A0, self.A1, self.A2))
-        scale = self._ex(scale[..., None], k, 1)[..., 0]
-        ok = sigma > jnp.finfo(self.dtype).eps * scale
+        # Near a cusp the torsion grows like 1/speed^2 and its gradient's intermediates
+        # overflow (NaN): there the value is kept and the gradient is zero, the regular formula
+        # seeing a well-conditioned stand-in (a unit helix).
+        ok = self._moving(sigma, k)
         okv = ok[..., None]
         helix = (jnp.array([1.0, 0.0, 1.0]), jnp.array([0.0, 1.0, 0.0]), jnp.array([-1.0, 0.0, 0.0]))
         regular = tau(jnp.where(ok, sigma, 1), jnp.where(okv, b, jnp.array([0.0, 1.0, 0.0])),
@@ -677,10 +682,7 @@ class PHQuintic(eqx.Module):
         # relative threshold: |r' x r''| tiny compared with |r'||r''| means kappa ~ 0; and at a
         # speed below eps of the curve's scale (a resting end) the ERF's frame is the limit
         scale = safe_norm(d1, keepdims=True) * safe_norm(d2, keepdims=True)
-        sigma = safe_norm(d1, keepdims=True)
-        curve = sum(dot_last(a, a) for a in (self.A0, self.A1, self.A2))
-        curve = self._ex(curve[..., None], k, 1)
-        ok = (nb > 1e-12 * scale) & (sigma > jnp.finfo(self.dtype).eps * curve)
+        ok = (nb > 1e-12 * scale) & self._moving(safe_norm(d1), k)[..., None]
         binormal = jnp.where(ok, bvec / jnp.where(ok, nb, 1), erf[..., :, 2])
         normal = jnp.cross(binormal, tangent)
         return jnp.stack([tangent, normal, binormal], axis=-1)

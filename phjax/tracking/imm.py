@@ -52,6 +52,7 @@ from .._jit import jit
 from .._misc import FINITE, POSITIVE, check_number_fields
 from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize
 from .kalman import (
+    _MEASUREMENT_FIELDS,
     _block,
     _canonical_rotvec,
     _clamped_time,
@@ -144,9 +145,7 @@ class IMMConfig(eqx.Module):
                 raise TypeError("rotation models must be ConstantVelocity models, got "
                                  f"{type(m).__name__}")
         check_number_fields(self, [("log_switch_rate", *FINITE)] + [
-            (name, *POSITIVE) for name in ("pos_meas_noise", "rot_meas_noise",
-                                           "init_pos_vel_std", "init_pos_acc_std",
-                                           "init_rot_vel_std")])
+            (name, *POSITIVE) for name in _MEASUREMENT_FIELDS])
 
     @property
     def order(self) -> int:

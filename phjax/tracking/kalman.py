@@ -95,9 +95,10 @@ _ORDER = {"cv": 2, "ca": 3}
 _DEFAULT_POS_Q = {"cv": 0.03, "ca": 20.0}
 
 
-#: the noise and initial-uncertainty fields of :class:`KalmanConfig` (all > 0)
-_NOISE_FIELDS = ("pos_process_noise", "pos_meas_noise", "rot_process_noise", "rot_meas_noise",
-                 "init_pos_vel_std", "init_pos_acc_std", "init_rot_vel_std")
+#: the measurement-noise and initial-uncertainty fields (all > 0) that :class:`KalmanConfig`
+#: and :class:`phjax.tracking.imm.IMMConfig` share; KalmanConfig adds its process noises
+_MEASUREMENT_FIELDS = ("pos_meas_noise", "rot_meas_noise", "init_pos_vel_std",
+                       "init_pos_acc_std", "init_rot_vel_std")
 
 
 class KalmanConfig(eqx.Module):
@@ -156,7 +157,8 @@ class KalmanConfig(eqx.Module):
         if self.pos_process_noise is None:
             self.pos_process_noise = _DEFAULT_POS_Q[self.model]
         # (NaN, 0 or negative noise gave NaN poses, silently)
-        check_number_fields(self, [(name, *POSITIVE) for name in _NOISE_FIELDS])
+        check_number_fields(self, [(name, *POSITIVE) for name in (
+            "pos_process_noise", "rot_process_noise", *_MEASUREMENT_FIELDS)])
 
     @property
     def order(self) -> int:
