@@ -26,6 +26,7 @@ from __future__ import annotations
 import functools
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -37,6 +38,7 @@ from .tracker import (
     check_config,
     TrackerConfig,
     TrackerState,
+    _filter_restart_part,
     _sample,
     _update,
     tracker_config_arrays,
@@ -113,8 +115,11 @@ class TrackerStream:
     3-DoF head tracker, an orientation-only trace), the stream takes the position to be the
     origin from then on (and the identity orientation for position-only sources), so that it
     starts and renders that part fixed instead of waiting forever; :attr:`measured_parts` says
-    which parts have been measured. A source that measures both from the start (or within
-    those frames) is not affected. :func:`phjax.track` reports the never-measured part as NaN
+    which parts have been measured. When the missing part is measured later, the filter
+    starts that part again from its first measurement (the estimate it had was of the
+    placeholder) and the stream moves there within a horizon; the other part goes on
+    unchanged. A source that measures both from the start (or within those frames) is not
+    affected. :func:`phjax.track` reports the never-measured part as NaN
     instead.
 
     Example::
@@ -155,8 +160,19 @@ class TrackerStream:
             return position, quaternion  # a 6-DoF source, or shapes the update rejects itself
         p_ok = bool(np.isfinite(position).all())
         q_ok = bool(np_valid_quaternions(quaternion))
+        filled = 0 if self._seen[1] else 1  # the part filled in, if any: the unseen one
+        filled_ok = p_ok if filled == 0 else q_ok
         self._seen[0] |= p_ok
         self._seen[1] |= q_ok
+        if self._partial >= PARTIAL_FRAMES and filled_ok:
+            # the filled-in part is measured at last: the filter's estimate of it was of the
+            # placeholder, so that part starts again from this measurement (at rest); the
+            # stream moves to it within a horizon, C1, and the other part goes on unchanged
+            self._partial = 0
+            state = self.state
+            kf = _filter_restart_part(self.config, state.filter, filled, position, quaternion)
+            self.state = eqx.tree_at(lambda s: s.filter, state, kf)
+            return position, quaternion
         other_seen = self._seen[0] if q_ok else self._seen[1]
         if p_ok != q_ok and not other_seen:  # one part only, and the other never seen
             self._partial += 1

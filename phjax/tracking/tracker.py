@@ -58,11 +58,12 @@ from .._sizes import unpad_rows
 from . import _exported
 from ._batch import run_batch
 from ._shapes import bounded_cache, pad_recording
-from .imm import IMMConfig, imm_predict_pose, imm_step, imm_uninitialized
+from .imm import IMMConfig, imm_init, imm_predict_pose, imm_step, imm_uninitialized
 from .kalman import (
     KalmanConfig,
     KalmanState,
     kalman_filter,
+    kalman_init,
     kalman_step,
     kalman_uninitialized,
     predict_pose,
@@ -393,6 +394,29 @@ def _filter_uninitialized(config: TrackerConfig, t, dtype):
     if config.imm is None:
         return kalman_uninitialized(config.kalman, t, dtype)
     return imm_uninitialized(config.imm, t, dtype)
+
+
+#: the filter state's fields of each part (Kalman and IMM states name them alike)
+_PART_FIELDS = (("x", "P", "pos_log_mu"), ("q", "w", "Pr", "rot_log_mu"))
+
+
+def _filter_restart_part(config: TrackerConfig, state, part: int, position, quaternion):
+    """``state`` with one part (0: position, 1: orientation) started again from a measurement
+    of it (at rest, initial covariance, uniform IMM mode probabilities); the other part and
+    the times unchanged. ``position`` / ``quaternion``: the measurement (only ``part``'s is
+    read)."""
+    dtype = state.t.dtype
+    position = jnp.asarray(position, dtype) if part == 0 else jnp.zeros(3, dtype)
+    quaternion = (jnp.asarray(quaternion, dtype) if part == 1
+                  else jnp.asarray([1, 0, 0, 0], dtype))
+    if config.imm is None:
+        fresh = kalman_init(config.kalman, state.t, position, quaternion)
+    else:
+        fresh = imm_init(config.imm, state.t, position, quaternion)
+    names = [n for n in _PART_FIELDS[part] if hasattr(state, n)]
+    keep = [getattr(state, n) for n in names]
+    new = [jnp.where(fresh.initialized, getattr(fresh, n), k) for n, k in zip(names, keep)]
+    return eqx.tree_at(lambda s: [getattr(s, n) for n in names], state, new)
 
 
 def _filter_step(config: TrackerConfig, state, t, position, quaternion):
