@@ -56,6 +56,9 @@ class Parser(argparse.ArgumentParser):
     """``argparse.ArgumentParser`` whose usage errors are one line (exit status 2):
     ``phjax smooth: error: argument --rate: ... (see 'phjax smooth --help')``."""
 
+    #: the commands' parsers by name (set on the top-level parser)
+    commands: dict[str, argparse.ArgumentParser] = {}
+
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
@@ -112,6 +115,33 @@ def positive_int(text: str) -> int:
     n = _number(text, int)
     if n < 1:
         raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return n
+
+
+def file_name(text: str) -> str:
+    """argparse type: a non-empty file name."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("needs a file name")
+    return text
+
+
+def nonnegative_int(text: str) -> int:
+    """argparse type: an integer >= 0 (counts where 0 means off)."""
+    n = _number(text, int)
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
+    return n
+
+
+#: the largest random seed (the one range of every seed: ``synthetic:N:SEED`` sources too)
+MAX_SEED = 2**32 - 1
+
+
+def seed_int(text: str) -> int:
+    """argparse type: a random seed, an integer in ``[0, 2^32 - 1]``."""
+    n = _number(text, int)
+    if not 0 <= n <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must be an integer between 0 and 2^32 - 1, got {text!r}")
     return n
 
 
@@ -229,12 +259,14 @@ def _memory_bytes() -> int | None:
         return None
 
 
-def check_fits(counts: dict[str, tuple[float, int]]) -> None:
+def check_fits(counts: dict[str, tuple[float, int]],
+               advice: str = "lower the rate or shorten the recording") -> None:
     """Fail before any work (``ValueError``: one line, exit status 2) when the arrays a command
     would make need more than half of this machine's memory, instead of running out of it.
 
     Arguments:
         counts: what (e.g. ``"--rate 1e+09 Hz over 30 s"``) -> (number of items, bytes each).
+        advice: what to do instead (the message's end).
     """
     total = _memory_bytes()
     if total is None:
@@ -245,7 +277,7 @@ def check_fits(counts: dict[str, tuple[float, int]]) -> None:
         n = counts[what][0]
         raise ValueError(f"{what} makes {n:.3g} samples: about {need / 2**30:,.4g} GiB of "
                          f"memory, more than half of this machine's {total / 2**30:.0f} GiB; "
-                         "lower the rate or shorten the recording")
+                         + advice)
 
 
 def replaced_note(path) -> str:
@@ -293,4 +325,4 @@ def add_sensor_arguments(parser, seed_help: str = "random seed (default 0)") -> 
                         help="fraction of lost frames (default 0.05)")
     parser.add_argument("--jitter", type=nonnegative_float, default=0.0,
                         help="timestamp jitter, fraction of the period")
-    parser.add_argument("--seed", type=int, default=0, help=seed_help)
+    parser.add_argument("--seed", type=seed_int, default=0, help=seed_help)

@@ -8,7 +8,13 @@ import signal
 import sys
 import threading
 
-from ._common import check_lookahead, float_between, positive_float
+from ._common import (
+    add_format_argument,
+    check_lookahead,
+    file_name,
+    float_between,
+    positive_float,
+)
 
 #: accepted ``--head-size`` (assumed vertical head size, m), ``--ipd`` (assumed
 #: inter-pupillary distance, m) and ``--fov`` (horizontal field of view, degrees): values
@@ -17,6 +23,10 @@ from ._common import check_lookahead, float_between, positive_float
 HEAD_SIZE_RANGE = (0.05, 0.5)
 IPD_RANGE = (0.03, 0.1)
 FOV_RANGE = (10.0, 170.0)
+
+
+def _hz(rate: float) -> str:
+    return f"{rate:.1f} Hz" if math.isfinite(rate) else "- Hz"
 
 
 class _Interrupted(BaseException):  # not caught by a library's "except Exception"
@@ -86,6 +96,18 @@ def cmd_live(args) -> int:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
 
+    # the capture thread's reports (a UDP source's malformed datagrams) and the main thread's
+    # lines, one at a time: held until the start line, then each on a line of its own
+    say_lock, held, started = threading.Lock(), [], False
+
+    def report(line: str) -> None:
+        with say_lock:
+            if not started:
+                held.append(line)
+            else:
+                print(("\n" + line) if tty and not args.quiet else line, file=sys.stderr,
+                      flush=True)
+
     try:
         import equinox as eqx
         import jax
@@ -96,11 +118,10 @@ def cmd_live(args) -> int:
         from ..live._udp import UdpSource
 
         source = open_source(args.source, model_dir=args.model_dir, ipd=args.ipd, fov=args.fov,
-                             monocular=args.monocular, head_size=args.head_size)
+                             monocular=args.monocular, head_size=args.head_size,
+                             format=args.format)
         if isinstance(source, UdpSource):
-            # its lines on malformed datagrams start on a line of their own beside the status
-            source.report = lambda line: print(("\n" + line) if tty and not args.quiet
-                                               else line, file=sys.stderr, flush=True)
+            source.report = report  # from the capture thread
             source.open()  # a port in use fails now, not after the tracker's compilation
         config = eqx.tree_at(lambda c: c.lookahead, live_tracker_config(source.depth_free),
                              ms / 1e3)
@@ -124,15 +145,21 @@ def cmd_live(args) -> int:
     if center_asked:
         lt.center()
     outs = ", ".join(o.url for o in lt.outputs) or "none"
-    print(f"phjax live: {lt.source.name} -> {outs} at {args.rate:g} Hz"
-          + (f", lookahead {ms:g} ms" if ms else "")
-          + (f", log {args.log}" if args.log else ""), file=sys.stderr)
+    with say_lock:  # the start line first, then the reports that came while starting
+        print(f"phjax live: {lt.source.name} -> {outs} at {args.rate:g} Hz"
+              + (f", lookahead {ms:g} ms" if ms else "")
+              + (f", log {args.log}" if args.log else ""), file=sys.stderr, flush=True)
+        for line in held:
+            print(line, file=sys.stderr, flush=True)
+        held.clear()
+        started = True
 
     def status(line: str) -> None:
         if args.quiet:
             return
-        print(("\r" + line) if tty else line, end="" if tty else "\n", file=sys.stderr,
-              flush=True)
+        with say_lock:
+            print(("\r" + line) if tty else line, end="" if tty else "\n", file=sys.stderr,
+                  flush=True)
 
     try:
         lt.run(status=status, status_interval=args.status_interval)
@@ -147,12 +174,16 @@ def cmd_live(args) -> int:
         print(file=sys.stderr)
     s = lt.stats()
     print(f"phjax live: sent {s['sent']} poses in {s['elapsed']:.2f} s "
-          f"({s['sent'] / max(s['elapsed'], 1e-9):.1f} Hz), {s['frames']} camera frames",
+          f"({_hz(s['sent_hz'])}), {s['frames']} camera frames",
           file=sys.stderr)
     for url, n in s["send_errors"].items():
         if n:
             print(f"phjax live: {url}: {n} of {s['sent']} packets could not be sent (nothing "
                   "listening on that port, or the network refused them)", file=sys.stderr)
+    for url, n in s["out_of_range"].items():
+        if n:
+            print(f"phjax live: {url}: {n} of {s['sent']} poses not sent: a value beyond what "
+                  "the format holds (OSC float32: 3.4e38)", file=sys.stderr)
     if isinstance(lt.source, UdpSource):
         u = lt.source.stats()
         frame = (f"sender's frame interval {1e3 * u['frame_interval']:.1f} ms, "
@@ -160,7 +191,9 @@ def cmd_live(args) -> int:
                  if math.isfinite(u["frame_interval"]) else "sender's frame interval unknown")
         print(f"phjax live: udp: {u['received']} datagrams received: {u['emitted']} poses "
               f"used, {u['repeated']} repeats of the last pose skipped, {u['superseded']} "
-              f"superseded by a newer one, dropped {lt.source.dropped_text()}; {frame}",
+              f"superseded by a newer one, "
+              + (f"{u['at_stop']} read as the run stopped, " if u["at_stop"] else "")
+              + f"dropped {lt.source.dropped_text()}; {frame}",
               file=sys.stderr)
     return 0
 
@@ -183,6 +216,7 @@ def add_commands(sub) -> None:
     p.add_argument("source", help="synthetic[:N[:SEED]] (N >= 1, 0 <= SEED < 2**32) | RGB-D "
                    "folder | webcam[:INDEX] (INDEX 0-99) | video file | realsense[:SERIAL] | "
                    "poses:FILE | udp://[HOST]:PORT")
+    add_format_argument(p, "format of a poses:FILE source")
     p.add_argument("--output", "-o", action="append", metavar="URL",
                    help="opentrack://HOST[:PORT] (default port 4242; 48-byte datagrams of six "
                    "float64: x y z cm, yaw pitch roll deg) or osc://HOST[:PORT] (default 9000; "
@@ -191,7 +225,7 @@ def add_commands(sub) -> None:
     p.add_argument("--duration", type=positive_float, default=None,
                    help="stop after this many seconds (a positive finite number; default: end "
                    "of the source / Ctrl-C)")
-    p.add_argument("--log", default=None, help="write every sent pose to this TUM file")
+    p.add_argument("--log", type=file_name, default=None, metavar="FILE.tum", help="write every sent pose to this TUM file")
     p.add_argument("--lookahead", type=float, default=0.0, metavar="MS",
                    help="display-time prediction, ms (default 0, at most 200): send the pose "
                    "predicted for MS after the render time. Set it to the display's "

@@ -24,7 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ._common import Parser, add_format_argument, format_user_error, positive_int, read_input
+from ._common import (
+    Parser,
+    add_format_argument,
+    check_fits,
+    format_user_error,
+    positive_int,
+    read_input,
+)
 
 __all__ = ["build_parser", "main"]
 
@@ -82,6 +89,9 @@ def cmd_demo_curve(args) -> int:
         path = None if root is None else root / "tum_rgbd_groundtruth" / "fr1_xyz-groundtruth.txt"
         path = path if path is not None and path.is_file() else None
     p0, p1, d0, d1, source = _tum_hermite_data(path, args.segments, args.stride, args.format)
+    # parameters and points, float64 at most: two copies of each sampled point at once
+    check_fits({f"--samples {args.samples} x {len(p0)} segments": (args.samples * len(p0), 64)},
+               "lower --samples or --segments")
     build = jax.jit(pj.hermite_quintic)
     t0 = time.perf_counter()
     curves = jax.block_until_ready(build(p0, p1, d0, d1))
@@ -163,6 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action=_Version,
                         help="show phjax's, JAX's and jaxlib's versions and exit")
     sub = parser.add_subparsers(dest="command", required=True)
+    parser.commands = sub.choices  # name -> the command's parser
 
     p = sub.add_parser("demo-curve", help="PH quintics from consecutive poses of a TUM trajectory",
                        description="Build a batch of PH quintic Hermite segments between "
@@ -215,7 +226,9 @@ def main(argv: list[str] | None = None) -> int:
     """
     parser = build_parser()
     try:
-        args = parser.parse_args(argv)
+        args, extra = parser.parse_known_args(argv)
+        if extra:  # named by the command they were given to, as its other usage errors
+            parser.commands.get(getattr(args, "command", None), parser).error(f"unrecognized arguments: {' '.join(extra)}")
     except SystemExit as stop:  # --help (0) or a usage error (2, its line already printed)
         return stop.code if isinstance(stop.code, int) else 2
     from ..io import TrajectoryWarning
@@ -246,7 +259,9 @@ def main(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:  # Ctrl-C: one line, the shell's status for SIGINT
             print(f"\nphjax {args.command}: interrupted", file=sys.stderr)
             return 130
-        except MemoryError as err:  # an input or option larger than this machine's memory
+        except (MemoryError, RuntimeError) as err:  # larger than this machine's memory
+            if not isinstance(err, MemoryError) and "RESOURCE_EXHAUSTED" not in str(err):
+                raise  # XLA's out of memory is a RuntimeError; any other is a bug
             print(f"phjax {args.command}: error: out of memory ({format_user_error(err)}); "
                   "lower --rate or shorten the input", file=sys.stderr)
             return 2

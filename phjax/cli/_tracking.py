@@ -20,7 +20,9 @@ from ._common import (
     check_output,
     check_plot_output,
     check_trajectory_output,
+    float_between,
     nonnegative_float,
+    nonnegative_int,
     positive_float,
     read_input,
     replaced_note,
@@ -209,8 +211,10 @@ def cmd_smooth(args) -> int:
 
 def _sensor_args(p, rgbd: bool = False):
     add_sensor_arguments(p.add_argument_group("sensor model and rendering"))
-    p.add_argument("--lookahead", type=nonnegative_float, default=30.0, metavar="MS",
-                   help="the display latency to compare at besides 0, ms (default 30: a frame "
+    p.add_argument("--lookahead", type=float_between(0.0, MAX_LOOKAHEAD_MS, "ms"), default=30.0,
+                   metavar="MS",
+                   help="the display latency to compare at besides 0, ms (default 30, at most "
+                   f"{MAX_LOOKAHEAD_MS:g}: a frame "
                    "shown 30 ms after the pose is read; every method then predicts the pose for "
                    "that display time and is scored against the truth there; 0: only the "
                    "comparison at the render time)")
@@ -248,7 +252,7 @@ def add_commands(sub) -> None:
     add_format_argument(p, "format of INPUT")
     p.add_argument("--duration", type=positive_float, default=60.0,
                    help="length of the synthetic motion, s")
-    p.add_argument("--rgbd", type=int, default=0, metavar="N",
+    p.add_argument("--rgbd", type=nonnegative_int, default=0, metavar="N",
                    help="instead: the end-to-end path on N frames of the package's synthetic RGB-D "
                    "head (YuNet + features + depth + ICP head pose, then the tracker); the YuNet "
                    "model is taken from the cache, seeded from ../shared/data when present, else "

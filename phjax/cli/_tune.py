@@ -19,6 +19,7 @@ from ._common import (
     add_output_argument,
     add_sensor_arguments,
     check_output,
+    nonnegative_float,
     positive_float,
     positive_int,
     read_input,
@@ -165,8 +166,6 @@ def cmd_tune(args) -> int:
 
     if args.max_steps < 1:
         raise ValueError(f"--max-steps must be >= 1, got {args.max_steps}")
-    if not args.lam >= 0:
-        raise ValueError(f"--lambda must be non-negative, got {args.lam}")
     if args.measured and len(args.measured) != len(args.train):
         raise ValueError(f"--measured: give one measurement file per ground-truth file, got "
                          f"{len(args.measured)} for {len(args.train)}")
@@ -281,7 +280,7 @@ def add_commands(sub) -> None:
         "JSON configuration for --config of the other commands.")
     p.add_argument("train", nargs="+",
                    help="ground-truth trajectory file(s) (TUM, EuRoC, CSV, ...)")
-    p.add_argument("--lambda", dest="lam", type=float, required=True,
+    p.add_argument("--lambda", dest="lam", type=nonnegative_float, required=True,
                    help="weight of the jerk terms (0 = accuracy only; 1 = equal weight)")
     add_output_argument(p, "output JSON file (the tuned configuration)")
     add_format_argument(p)

@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._url import url_options, url_port
+from ._url import url_extras, url_options, url_port
 
 __all__ = [
     "OPENTRACK_PORT",
@@ -169,6 +169,16 @@ class _UdpOutput(Output):
         self.sock = _udp_socket(host, port, url, from_port)
         self.sent = 0
         self.send_errors = 0
+        #: poses not sent because a value does not fit the format (float32 OSC beyond 3.4e38,
+        #: opentrack's centimetres beyond float64): never sent as inf
+        self.out_of_range = 0
+
+    def _fits(self, values, dtype) -> bool:
+        """Whether ``values`` are finite in ``dtype`` (else counted in :attr:`out_of_range`)."""
+        with np.errstate(over="ignore"):
+            ok = bool(np.isfinite(np.asarray(values, np.float64).astype(dtype)).all())
+        self.out_of_range += not ok
+        return ok
 
     def _send(self, data: bytes) -> None:
         try:
@@ -194,7 +204,10 @@ class OpenTrackOutput(_UdpOutput):
         super().__init__(host, port, from_port, f"opentrack://{_url_host(host)}:{port}")
 
     def send(self, t, position, quaternion) -> None:
-        self._send(_PACK.pack(*opentrack_values(position, quaternion)))
+        with np.errstate(over="ignore"):  # beyond float64 in cm: inf, counted below
+            values = opentrack_values(position, quaternion)
+        if self._fits(values, np.float64):
+            self._send(_PACK.pack(*values))
 
 
 class OscOutput(_UdpOutput):
@@ -215,8 +228,11 @@ class OscOutput(_UdpOutput):
         super().__init__(host, port, from_port, f"osc://{_url_host(host)}:{port}")
 
     def send(self, t, position, quaternion) -> None:
+        values = [t, *np.asarray(position, np.float64), *np.asarray(quaternion, np.float64)]
+        if not self._fits(values, np.float32):
+            return
         b = self._builder(address=OSC_ADDRESS)
-        for v in (t, *np.asarray(position, np.float64), *np.asarray(quaternion, np.float64)):
+        for v in values:
             b.add_arg(float(v), "f")
         self._send(b.build().dgram)
 
@@ -245,16 +261,22 @@ class TumLog(Output):
         p = np.asarray(position, np.float64).tolist()
         q = np.asarray(quaternion, np.float64).tolist()
         row = [float(t), *p, q[1], q[2], q[3], q[0]]
-        self._f.write(" ".join(map(repr, row)) + "\n")
-        self.lines += 1
-        if self._last_flush is None or t - self._last_flush >= self._flush_interval:
-            self._f.flush()
-            self._last_flush = t
+        try:
+            self._f.write(" ".join(map(repr, row)) + "\n")
+            self.lines += 1
+            if self._last_flush is None or t - self._last_flush >= self._flush_interval:
+                self._f.flush()
+                self._last_flush = t
+        except OSError as e:  # a full disk: the run ends, naming the log
+            raise OutputError(f"cannot write the log {self.url}: {e.strerror or e}") from None
 
     def close(self) -> None:
         if not self._f.closed:
-            self._f.flush()
-            self._f.close()
+            try:
+                self._f.close()  # flushes
+            except OSError as e:  # the last lines are lost: say so
+                raise OutputError(f"cannot write the log {self.url}: {e.strerror or e}"
+                                  ) from None
 
 
 def _port(text: str | None, default: int, url: str) -> int:
@@ -294,6 +316,7 @@ def open_output(url: str) -> Output:
         raise OutputError(f"{url}: missing host")
     if parsed.path not in ("", "/"):
         raise OutputError(f"{url}: unexpected path {parsed.path!r}")
+    url_extras(parsed, url, OutputError)
     query = url_options(parsed, url, ("from",), OutputError)
     from_port = _port(query["from"][-1], 0, url) if "from" in query else None
     if scheme == "opentrack":

@@ -341,6 +341,7 @@ class LiveTracker:
         self.dropped = 0
         self.no_pose: Counter = Counter()  # frames without a pose, by front-end status
         self.sent = 0
+        self._sent_at_t0 = 0  # the send at the start's deadline (rates count those after it)
         self.missed_deadlines = 0
         self.waiting = 0
         self.held = 0
@@ -614,6 +615,8 @@ class LiveTracker:
         self.ages.add(age)
         self.sent_ages.add(now - capture if capture is not None else float("nan"))
         self.sent += 1
+        if t_k == self.t0:
+            self._sent_at_t0 = 1
         s = Sample(ts, p, q, age)
         self.latest = s
         if self.callback is not None:
@@ -677,14 +680,16 @@ class LiveTracker:
         Keys: ``elapsed`` (s), ``frames`` (measurements received), ``status`` (their counts
         by front-end status), ``dropped`` (camera frames lost before reaching the front-end),
         ``no_pose`` (frames without a pose, by status), ``lost`` (``dropped`` plus the
-        ``no_pose`` counts), ``camera_fps``, ``sent``, ``missed_deadlines``, ``waiting``
+        ``no_pose`` counts), ``camera_fps``, ``sent``, ``sent_hz`` (the poses sent after the
+        start's deadline per second of ``elapsed``), ``missed_deadlines``, ``waiting``
         (deadlines before the first pose), ``held`` (a non-finite sample replaced by the last
         good one), ``render_hz``, ``interval_p50`` / ``_p99`` / ``_max`` (between sends, s),
         ``age_p50`` / ``_p99`` (``Sample.age``), ``applied_age_p50`` / ``_p99`` (capture to
         stream update), ``sent_age_p50`` / ``_p99`` (capture to send), ``front_end_p50`` (the
         front-end's time per frame; NaN if the source does not say), ``horizon`` and
         ``lookahead`` (s, of the config in use), ``send_errors`` (per output URL: packets the
-        network refused, e.g. nothing listening on that port).
+        network refused, e.g. nothing listening on that port), ``out_of_range`` (per output
+        URL: poses not sent because a value does not fit its format).
         """
         iv = self.intervals.values()
         ages = self.ages.values()
@@ -705,6 +710,7 @@ class LiveTracker:
             "lost": self.dropped + sum(self.no_pose.values()),
             "camera_fps": float(cam),
             "sent": self.sent,
+            "sent_hz": (self.sent - self._sent_at_t0) / elapsed if elapsed > 0 else float("nan"),
             "missed_deadlines": self.missed_deadlines,
             "waiting": self.waiting,
             "held": self.held,
@@ -722,6 +728,7 @@ class LiveTracker:
             "horizon": float(self._config_used.horizon),
             "lookahead": float(self._config_used.lookahead),
             "send_errors": {o.url: int(getattr(o, "send_errors", 0)) for o in self._outputs},
+            "out_of_range": {o.url: int(getattr(o, "out_of_range", 0)) for o in self._outputs},
         }
 
     def status_line(self) -> str:
@@ -738,7 +745,7 @@ class LiveTracker:
         s = self.stats()
         now = self._t_render_end if self._t_render_end is not None else self.clock.now()
         prev = self._status_prev if self._status_prev is not None else (
-            self.t0 if self.t0 is not None else now, 0, 0)
+            self.t0 if self.t0 is not None else now, 0, self._sent_at_t0)
         span = now - prev[0]
         fps = (self.frames - prev[1]) / span if span > 0 else float("nan")
         hz = (self.sent - prev[2]) / span if span > 0 else float("nan")

@@ -212,16 +212,21 @@ class PoseReplaySource(Source):
         self.rate = float(1.0 / np.median(dt)) if n > 1 and np.median(dt) > 0 else None
 
     @classmethod
-    def from_file(cls, path) -> PoseReplaySource:
+    def from_file(cls, path, format: str = "auto") -> PoseReplaySource:
+        """The poses of a file (``FILE`` or ``FILE#NAME``) in a :mod:`phjax.io` ``format``
+        (``phjax live --format``)."""
         from ..io import read_trajectory_spec, split_trajectory_name
 
         spec, _ = split_trajectory_name(path)  # FILE#NAME: one of several (CWI, AVTrack360)
-        if not Path(spec).is_file():
+        if not Path(spec).exists():
             raise SourceError(f"pose file not found: {spec}")
+        if Path(spec).is_dir():
+            raise SourceError(f"{spec}: a folder (poses:FILE takes a pose file)")
         try:
-            traj = read_trajectory_spec(path, syntax="poses:FILE#NAME")
+            traj = read_trajectory_spec(path, format, syntax="poses:FILE#NAME")
         except ValueError as e:  # a bad file, or FILE#NAME missing / wrong: one line
-            raise SourceError(str(e)) from None
+            raise SourceError(str(e).replace("pass format= one of", "pass --format, one of")
+                              ) from None
         if traj.num_samples < 2:  # as phjax smooth: one pose is no motion to replay
             raise SourceError(f"{path}: {traj.num_samples} pose(s); a replay needs at least 2")
         return cls(traj.times, traj.positions, traj.quaternions, name=f"poses {path}")
@@ -941,11 +946,12 @@ class RealSenseSource(Source):
 # ------------------------------------------------------------------------------- parsing
 def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: float = 60.0,
                 monocular: str = "net", head_size: float | None = None,
-                worker: bool = True) -> Source:
+                worker: bool = True, format: str = "auto") -> Source:
     """A :class:`Source` from the ``SOURCE`` argument of ``phjax live`` (see the module docs).
 
     ``ipd``, ``fov``, ``monocular`` and ``head_size`` apply to webcam / video sources
-    (:class:`VideoSource`). With ``worker=True`` (default) a source with a vision front-end
+    (:class:`VideoSource`), ``format`` (a :mod:`phjax.io` format, default by the file's
+    content) to ``poses:FILE``. With ``worker=True`` (default) a source with a vision front-end
     (:attr:`Source.front_end`: synthetic, RGB-D folders, webcam / video, RealSense) is
     returned as a :class:`phjax.live.WorkerSource`: its frames and front-end run in a worker
     process, where they cannot hold the render loop (real clock only; pass ``worker=False``
@@ -957,7 +963,7 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
     if worker:
         options = {"model_dir": model_dir, "ipd": ipd, "fov": fov, "monocular": monocular,
                    "head_size": head_size}
-        local = open_source(spec, worker=False, **options)
+        local = open_source(spec, worker=False, format=format, **options)
         if not local.front_end:
             return local
         from ._worker import WorkerSource
@@ -965,6 +971,8 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
         return WorkerSource(local, str(spec), options)
     spec = str(spec)
     kind, _, arg = spec.partition(":")
+    kind = kind.lower() if kind.lower() in ("synthetic", "webcam", "realsense", "udp",
+                                            "poses") else kind  # URL schemes: any case
     if kind == "synthetic":
         return SyntheticSource(*synthetic_spec(spec), model_dir=model_dir)
     if kind == "webcam":
@@ -984,7 +992,7 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
         if not arg:
             raise SourceError("poses: needs a file, poses:FILE")
         try:
-            return PoseReplaySource.from_file(arg)
+            return PoseReplaySource.from_file(arg, format)
         except ValueError as e:
             raise SourceError(str(e)) from None
     path = Path(spec)

@@ -48,7 +48,7 @@ import numpy as np
 
 from .._np_quat import np_axis_quat, np_qmul
 from ._sources import Measurement, Source, SourceError
-from ._url import url_options, url_port
+from ._url import url_extras, url_options, url_port
 
 __all__ = [
     "DATAGRAM_SIZE",
@@ -122,7 +122,9 @@ class UdpSource(Source):
         received: datagrams read; ``dropped``: a :class:`collections.Counter` of the dropped
             ones by reason (:data:`REASONS`); ``repeated``: valid ones skipped as a repeat of
             the previous pose (module docs); ``superseded``: poses replaced by a newer one read
-            at the same wake-up; ``emitted``: measurements given to the tracker.
+            at the same wake-up; ``emitted``: measurements given to the tracker; ``at_stop``:
+            poses read as the run stopped (not given to it). Every received datagram is in
+            exactly one of ``emitted``, ``repeated``, ``superseded``, ``at_stop``, ``dropped``.
     """
 
     def __init__(self, host: str = "0.0.0.0", port: int = 0, *, depth_free: bool = False,
@@ -140,6 +142,7 @@ class UdpSource(Source):
         self.emitted = 0
         self.superseded = 0
         self.repeated = 0
+        self.at_stop = 0
         self.dropped: Counter = Counter()
         self.last_sender: str | None = None
         #: every sender seen (host:port)
@@ -180,6 +183,7 @@ class UdpSource(Source):
             raise SourceError(f"{spec}: missing port; {usage}")
         if parsed.path not in ("", "/"):
             raise SourceError(f"{spec}: unexpected path {parsed.path!r}; {usage}")
+        url_extras(parsed, spec, SourceError)
         query = url_options(parsed, spec, ("noise",), SourceError)
         noise = query.get("noise", ["rgbd"])[-1]
         if noise not in ("rgbd", "monocular"):
@@ -231,7 +235,9 @@ class UdpSource(Source):
             if not ready:
                 continue
             newest = self._drain(sock, clock, stop)
-            if newest is not None and not stop.is_set():
+            if newest is not None and stop.is_set():
+                self.at_stop += 1  # the run has ended: counted, not applied
+            elif newest is not None:
                 t, position, quaternion = newest
                 self.emitted += 1
                 emit(Measurement(t, position, quaternion))
@@ -349,7 +355,8 @@ class UdpSource(Source):
         return f"{total} ({parts})"
 
     def stats(self) -> dict:
-        """Counts so far: ``received``, ``emitted``, ``repeated``, ``superseded``, ``dropped``
+        """Counts so far: ``received``, ``emitted``, ``repeated``, ``superseded``, ``at_stop``,
+        ``dropped``
         (total) and ``dropped_by_reason`` (a dict over :data:`REASONS`), ``last_sender`` and
         ``frame_interval`` (s, the sender's, :attr:`frame_interval`) and
         ``datagrams_per_frame`` (:attr:`datagrams_per_frame`)."""
@@ -358,6 +365,7 @@ class UdpSource(Source):
             "emitted": self.emitted,
             "repeated": self.repeated,
             "superseded": self.superseded,
+            "at_stop": self.at_stop,
             "dropped": sum(self.dropped.values()),
             "dropped_by_reason": {r: self.dropped[r] for r in REASONS},
             "last_sender": self.last_sender,

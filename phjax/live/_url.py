@@ -28,3 +28,12 @@ def url_options(parsed: urllib.parse.SplitResult, url: str, allowed: tuple[str, 
     if unknown:
         raise error(f"{url}: unknown option(s) {', '.join(sorted(unknown))}")
     return query
+
+
+def url_extras(parsed: urllib.parse.SplitResult, url: str, error: type[Exception]) -> None:
+    """``error`` with one line when a split ``url`` has a user, password or fragment (which
+    the address ignores: a typing error, not an option)."""
+    if parsed.username is not None or parsed.password is not None:
+        raise error(f"{url}: unexpected user or password (use HOST[:PORT])")
+    if parsed.fragment:
+        raise error(f"{url}: unexpected fragment #{parsed.fragment}")

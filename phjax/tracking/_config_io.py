@@ -137,7 +137,7 @@ def save_config(
         The path written.
     """
     path = Path(path)
-    path.write_text(json.dumps(config_to_dict(config, metadata), indent=2) + "\n")
+    path.write_text(json.dumps(config_to_dict(config, metadata), indent=2) + "\n", encoding="utf-8")
     return path
 
 
@@ -150,7 +150,10 @@ def load_config(path: str | os.PathLike) -> TrackerConfig:
     """
     path = Path(path)
     try:
-        d = json.loads(path.read_text())
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path}: not a JSON text file (byte {err.start} is not UTF-8)"
+                         ) from None
     except json.JSONDecodeError as err:
         raise ValueError(f"{path}: not valid JSON ({err})") from err
     return config_from_dict(d, str(path))

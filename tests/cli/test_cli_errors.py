@@ -106,6 +106,17 @@ BAD_ARGUMENTS = [
      "overlap for too short a time"),  # a two-pose file: no render samples
     (["track-rgbd", "synthetic:2", "-o", "OUT.tum", "--rate", "0"], "argument --rate"),
     (["demo-curve", "FILE", "--stride", "0"], "argument --stride: must be an integer >= 1"),
+    # were tracebacks (OverflowError, XLA's RESOURCE_EXHAUSTED) or accepted and failing late
+    (["demo", "--seed", "9223372036854775808"],
+     "argument --seed: must be an integer between 0 and 2^32 - 1"),
+    (["evaluate", "FILE", "--seed", "-1"], "argument --seed: must be an integer between 0"),
+    (["demo", "--rgbd", "-1"], "argument --rgbd: must be an integer >= 0"),
+    (["demo", "--lookahead", "1e6"], "argument --lookahead: must be between 0 and 200 ms"),
+    (["tune", "FILE", "--lambda", "inf", "-o", "OUT.json"], "argument --lambda: must be a finite"),
+    (["demo-curve", "FILE", "--samples", "1000000000000"],
+     "--samples 1000000000000 x 1 segments makes 1e+12 samples"),
+    (["live", "poses:FILE", "--log="], "argument --log: needs a file name"),
+    (["live", "poses:FILE", "--bogus"], "phjax live: error: unrecognized arguments: --bogus"),
     (["smooth", "FILE", "-o", "OUT.txt", "--format", "kitti"], "argument --format: invalid choice"),
     (["smooth", "FILE", "-o", "OUT.txt", "--out-format", "kitti"], "argument --out-format"),
     (["evaluate", "FILE", "--format", "kitti"], "argument --format: invalid choice"),

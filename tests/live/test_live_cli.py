@@ -132,6 +132,12 @@ def test_acceptance_synthetic_opentrack(listener, model_cache, tmp_path, cli_jax
     (["live", "poses:{poses}#P01_V1"], "#NAME selects one of several"),
     (["live", "poses:{cwi}"], "holding 27 trajectories; name one as poses:FILE#NAME"),
     (["live", "poses:{cwi}#P99"], "no trajectory named 'P99'"),
+    # named as a folder (was "pose file not found"); the option to pass is live's own
+    (["live", "poses:{tmp}"], "a folder (poses:FILE takes a pose file)"),
+    (["live", "poses:{comment}"], "cannot detect the trajectory format from its first lines; "
+     "pass --format, one of"),
+    (["live", "poses:{comment}", "--format", "tum"], "comment.tum: no data lines"),
+    (["live", "UDP://127.0.0.1:0"], "port 0 out of range"),  # a URL scheme in any case
 ])
 def test_bad_input_exits_2(argv, message, tmp_path, capsys):
     poses = tmp_path / "p.tum"
@@ -143,7 +149,10 @@ def test_bad_input_exits_2(argv, message, tmp_path, capsys):
     try:
         cwi = (shared_path("vr_cwi_6dof_navigation", "H1_longdress_nav.csv")
                if "{cwi}" in " ".join(argv) else None)
-        args = [a.format(poses=poses, busy=busy.getsockname()[1], cwi=cwi) for a in argv]
+        comment = tmp_path / "comment.tum"
+        comment.write_text("# only a comment\n")
+        args = [a.format(poses=poses, busy=busy.getsockname()[1], cwi=cwi, tmp=tmp_path,
+                         comment=comment) for a in argv]
         assert main(args) == 2
     finally:
         busy.close()

@@ -103,6 +103,21 @@ def test_osc_message(listener):  # noqa: F811
     np.testing.assert_allclose(msg.params, [1.5, 0.1, 0.2, 0.3, 1, 0, 0, 0], atol=1e-6)
 
 
+def test_values_beyond_the_format_are_counted_not_sent(listener):  # noqa: F811
+    """A position beyond float32 (OSC) or beyond float64 in centimetres (opentrack) is not sent
+    as inf and does not end the run (OSC raised OverflowError): counted in ``out_of_range``."""
+    osc = open_output(f"osc://127.0.0.1:{listener.port}")
+    ot = open_output(f"opentrack://127.0.0.1:{listener.port}")
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    for out, big in ((osc, 1e39), (ot, 1e307)):
+        out.send(0.0, np.array([big, 0.0, 0.0]), q)
+        out.send(0.1, np.array([1.0, 0.0, 0.0]), q)
+        assert out.out_of_range == 1 and out.sent == 1
+        out.close()
+    listener.close()
+    assert len(listener.packets) == 2
+
+
 def test_tum_log_round_trip(tmp_path):
     log = TumLog(tmp_path / "x.tum")
     rng = np.random.default_rng(0)
@@ -132,6 +147,8 @@ def test_tum_log_round_trip(tmp_path):
     ("osc://host.invalid", "cannot resolve"),
     ("opentrack://127.0.0.1:4242/path", "unexpected path"),
     ("opentrack://127.0.0.1:4242?to=1", "unknown option"),
+    ("opentrack://user:pw@127.0.0.1", "unexpected user or password"),  # were ignored
+    ("osc://127.0.0.1:9000#x", "unexpected fragment #x"),
 ])
 def test_bad_urls(url, msg):
     with pytest.raises(OutputError, match=msg):

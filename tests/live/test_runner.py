@@ -690,11 +690,14 @@ def test_status_line_reports_input_output_lost_age_and_lookahead():
     assert "\n" not in line
     fps = float(re.search(r"in +([\d.]+) fps", line).group(1))
     hz = float(re.search(r"out +([\d.]+) Hz", line).group(1))
-    assert abs(fps - 30.0) < 0.5 and abs(hz - 120.0) < 1.0
+    # the send at the start's deadline opens the window, it is not in it (counted, the first
+    # status and the summary read (n + 1) / n of the rate: 416 Hz on a one-frame run)
+    assert abs(fps - 30.0) < 0.5 and abs(hz - 120.0) < 0.05
     assert f"lost {lost.sum()} (no pose {lost.sum()})" in line
     assert "lookahead 20 ms" in line and "missed 0" in line
     s = lt.stats()
     assert s["lost"] == lost.sum() and s["lookahead"] == 0.02
+    assert s["sent_hz"] == pytest.approx(120.0, abs=1e-6)  # the virtual clock: exact
 
 
 def _rss_mb() -> float:
@@ -785,8 +788,10 @@ def test_a_failing_log_still_closes_the_source_and_stop_before_start_is_final(tm
     lt.start()
     port = lt.source.port
     lt.wait(5)
-    with pytest.raises(OSError, match="No space left"):
-        lt.stop()
+    from phjax.live import OutputError
+
+    with pytest.raises(OutputError, match="cannot write the log /dev/full: No space left"):
+        lt.stop()  # the log named (was the bare OSError)
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     s.bind(("127.0.0.1", port))  # free again
     s.close()

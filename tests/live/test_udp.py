@@ -269,6 +269,34 @@ def test_reports_are_rate_limited_and_backlog_is_superseded():
     np.testing.assert_allclose(got[0].position, [0.09, 0, 0.6])  # the newest: x = 9 cm
 
 
+def test_every_datagram_is_counted_once_also_at_the_stop():
+    """A pose read while the run stops is not applied but counted (``at_stop``): before, it
+    fell out of every count, and the summary's parts summed to one less than ``received``."""
+
+    class StopDuringTheRead:  # the stop arrives while the datagram is being read
+        calls = 0
+
+        def is_set(self):
+            self.calls += 1
+            return self.calls > 1
+
+    src = UdpSource("127.0.0.1", 0, report=lambda line: None)
+    src.open()
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    got = []
+    try:
+        tx.sendto(PACK.pack(1, 2, 60, 3, 4, 5), ("127.0.0.1", src.port))
+        time.sleep(0.05)
+        src.run(RealClock(), 0.0, StopDuringTheRead(), got.append)
+    finally:
+        tx.close()
+        src.close()
+    s = src.stats()
+    assert not got and s["received"] == 1 and s["at_stop"] == 1
+    parts = ("emitted", "repeated", "superseded", "at_stop", "dropped")
+    assert sum(s[k] for k in parts) == s["received"]
+
+
 def test_repeats_of_opentrack_pipeline_are_not_measurements():
     """opentrack sends the last pose every 4 ms: a 30 Hz tracker's frames arrive as runs of
     equal datagrams. Each new pose is one measurement stamped at its first datagram; a pose

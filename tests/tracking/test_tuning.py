@@ -398,6 +398,9 @@ def test_load_config_errors(tmp_path):
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(ValueError, match="not valid JSON"):
         tuning.load_config(tmp_path / "bad.json")
+    (tmp_path / "bin.json").write_bytes(b'{"format": "\xff"}')  # the file named, one line
+    with pytest.raises(ValueError, match=r"bin.json: not a JSON text file \(byte 12 is not UTF-8"):
+        tuning.load_config(tmp_path / "bin.json")
     partial = {"format": tuning.CONFIG_FORMAT, "version": 1, "tracker": {"horizon": 0.05}}
     # defaults fill in; no "imm" section: the single-model stream (files from before the IMM)
     assert tuning.config_from_dict(partial) == pj.TrackerConfig(horizon=0.05, imm=None)
