@@ -199,8 +199,12 @@ def _fit(src, tgt, w, with_scale: bool, rtol) -> _Fit:
     wn = w / total_safe  # normalised weights (sum 1, or all 0)
     mu_x = jnp.einsum("...n,...ni->...i", wn, src)
     mu_y = jnp.einsum("...n,...ni->...i", wn, tgt)
+    # centred points divided by their largest coordinate if above 1 (the rotation does not
+    # change, the scale is corrected below): the second moments cannot overflow (float32 ~1e19)
     xc = src - mu_x[..., None, :]
     yc = tgt - mu_y[..., None, :]
+    mx, my = _max_abs(xc, wn), _max_abs(yc, wn)
+    xc, yc = xc / mx[..., None, None], yc / my[..., None, None]
     h = jnp.einsum("...n,...ni,...nj->...ij", wn, xc, yc)
     var_x = jnp.einsum("...n,...ni,...ni->...", wn, xc, xc)
 
@@ -226,7 +230,7 @@ def _fit(src, tgt, w, with_scale: bool, rtol) -> _Fit:
     q = jnp.where(ok[..., None], q, ident)
     rot = quat_to_matrix(q)
     if with_scale:
-        scale = jnp.where(ok, safe_div(lam1, var_x, 1.0), 1.0).astype(dtype)
+        scale = jnp.where(ok, safe_div(lam1, var_x, 1.0) * my / mx, 1.0).astype(dtype)
     else:
         scale = jnp.ones_like(lam1)
     t = mu_y - scale[..., None] * jnp.einsum("...ij,...j->...i", rot, mu_x)
@@ -238,11 +242,19 @@ def _apply(rot, t, s, p):
     return s[..., None, None] * (p @ jnp.swapaxes(rot, -1, -2)) + t[..., None, :]
 
 
+def _max_abs(x, w):
+    """``max |x|`` over the rows with ``w > 0``, at least 1, without gradient: a divisor that
+    only scales large values down (so no row, used or not, grows and overflows)."""
+    m = jnp.max(jnp.where((w > 0)[..., None], jnp.abs(x), 0), axis=(-2, -1), initial=1)
+    return jax.lax.stop_gradient(m)
+
+
 def _weighted_rms(rot, t, s, src, tgt, w):
     r = _apply(rot, t, s, src) - tgt
+    m = _max_abs(r, w)  # (no overflow in r^2)
     total = jnp.sum(w, axis=-1)
-    sse = jnp.einsum("...n,...ni,...ni->...", w, r, r)
-    return safe_sqrt(safe_div(sse, total))
+    sse = jnp.einsum("...n,...ni,...ni->...", w, r / m[..., None, None], r / m[..., None, None])
+    return m * safe_sqrt(safe_div(sse, total))
 
 
 def _prepare(source, target, weights):

@@ -222,7 +222,8 @@ def match_descriptors(
     Arguments:
         query: ``(Ka, D)`` descriptors (``uint8`` packed bits for ``"hamming"``).
         train: ``(Kb, D)`` descriptors.
-        query_valid, train_valid: masks of real (non-padded) rows (default all).
+        query_valid, train_valid: masks of real (non-padded) rows (default all). Rows with a
+            non-finite value are invalid too (``"l2"``).
         metric: ``"hamming"`` (ORB) or ``"l2"`` (SIFT).
         ratio: ratio-test threshold (``1`` disables it).
         mutual: require mutual nearest neighbours.
@@ -246,8 +247,11 @@ def _match(query, train, query_valid, train_valid, metric, ratio, mutual, max_di
     tv = jnp.ones(kb, bool) if train_valid is None else train_valid
     if ka == 0 or kb == 0:
         return Matches(jnp.zeros(ka, jnp.int32), jnp.zeros(ka, bool), jnp.full(ka, jnp.inf))
+    if metric == "l2":  # a non-finite descriptor is invalid (its NaN distances would win argmin)
+        qv = qv & jnp.all(jnp.isfinite(query), axis=-1)
+        tv = tv & jnp.all(jnp.isfinite(train), axis=-1)
     d = _pairwise_distance(query, train, metric)
-    d = jnp.where(qv[:, None] & tv[None, :], d, jnp.inf)
+    d = jnp.where(qv[:, None] & tv[None, :] & ~jnp.isnan(d), d, jnp.inf)
     # best and second best by two min-reductions (lax.top_k followed by slicing is lowered to
     # a full row sort on CPU, ~15x slower here)
     idx = jnp.argmin(d, axis=1).astype(jnp.int32)
@@ -294,7 +298,7 @@ def lift_keypoints(
     """Back-project pixels through a (registered) depth image, rejecting bad depth.
 
     Arguments:
-        uv: pixel coordinates ``(u, v)``.
+        uv: pixel coordinates ``(u, v)``; non-finite rows are not ``ok``.
         depth: depth in metres (0 / NaN = missing), registered to the image of ``uv``.
         intrinsics: an object with ``fx, fy, cx, cy`` (e.g. ``CameraIntrinsics``).
         valid: input mask (padding), default all.
@@ -320,6 +324,8 @@ def lift_keypoints(
 
 @jit
 def _lift(uv, depth, valid, fx, fy, cx, cy, min_depth, max_depth, edge_abs, edge_rel, min_valid):
+    valid = valid & jnp.all(jnp.isfinite(uv), axis=-1)
+    uv = jnp.where(valid[..., None], uv, 0)  # (finite values and gradients where not ok)
     z, nb = _depth_at(depth, uv)
     nb_ok = (nb >= min_depth) & (nb <= max_depth)
     spread = jnp.max(jnp.where(nb_ok, jnp.abs(nb - z[..., None]), 0), axis=-1)

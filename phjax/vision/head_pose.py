@@ -102,7 +102,7 @@ class HeadPoseStatus(enum.IntEnum):
     NO_DEPTH = 2  #: too little valid depth in the frame or in the face region
     TOO_FEW_MATCHES = 3  #: no usable feature / landmark correspondence and no prediction
     ALIGNMENT_FAILED = 4  #: the alignment did not pass the overlap / residual checks
-    INVALID_INPUT = 5  #: colour / depth arrays of the wrong shape or type
+    INVALID_INPUT = 5  #: colour / depth arrays of the wrong shape or type, or bad intrinsics
 
 
 @dataclass(frozen=True)
@@ -677,17 +677,21 @@ class HeadPoseEstimator:
         return self.process(frame.color, frame.depth, frame.timestamp, frame.intrinsics)
 
     def process(self, color: Any, depth: Any, t: float | None = None,
-                intrinsics: CameraIntrinsics | None = None) -> HeadPoseResult:
+                intrinsics: Any = None) -> HeadPoseResult:
         """Estimate the head pose in one registered RGB-D frame.
 
         Arguments:
             color: ``uint8 (H, W, 3)`` BGR image.
             depth: ``(H, W)`` depth in metres registered to ``color`` (0 / NaN = missing).
             t: timestamp, s (default: frame index / 30).
-            intrinsics: colour intrinsics (default: the constructor's).
+            intrinsics: colour intrinsics (default: the constructor's): a
+                :class:`~phjax.vision.rgbd_io.CameraIntrinsics` of the frame's size, or
+                ``(fx, fy, cx, cy)`` (a sequence or an object with these attributes).
 
         Returns:
-            A :class:`HeadPoseResult`; never raises for bad frame content.
+            A :class:`HeadPoseResult`; never raises for bad frame content: wrong colour /
+            depth arrays and missing or invalid intrinsics (not finite ``fx, fy > 0``, finite
+            ``cx, cy``; another image size) give ``INVALID_INPUT``.
         """
         t_start = time.perf_counter()
         cfg = self.config
@@ -698,7 +702,7 @@ class HeadPoseEstimator:
         checked = self._checked_inputs(color, depth, intr)
         if checked is None:
             return self._result(t, HeadPoseStatus.INVALID_INPUT)
-        color, depth = checked
+        color, depth, intr = checked
         n_valid = int(np.count_nonzero((depth >= cfg.min_depth) & (depth <= cfg.max_depth)))
         if n_valid < cfg.min_valid_depth:
             return self._result(t, HeadPoseStatus.NO_DEPTH)
@@ -777,19 +781,27 @@ class HeadPoseEstimator:
 
     # --- the parts of :meth:`process`
 
-    def _checked_inputs(self, color: Any, depth: Any, intr: CameraIntrinsics | None):
-        """``(color, depth)`` as uint8 BGR and float32 metres (NaN -> 0), or None if invalid."""
+    def _checked_inputs(self, color: Any, depth: Any, intr: Any):
+        """``(color, depth, intrinsics)`` as uint8 BGR, float32 metres (NaN -> 0) and checked
+        :class:`CameraIntrinsics` of the frame's size, or None if invalid."""
         try:
             color = np.asarray(color)
             depth = np.asarray(depth, dtype=np.float32)
             bad = (color.ndim != 3 or color.shape[-1] != 3 or color.dtype != np.uint8
-                   or depth.shape != color.shape[:2] or intr is None
-                   or (intr.height, intr.width) != depth.shape)
-        except (TypeError, ValueError):
+                   or depth.shape != color.shape[:2] or intr is None)
+            if not bad:
+                if not isinstance(intr, CameraIntrinsics):  # (fx, fy, cx, cy) or attributes
+                    vals = ([getattr(intr, a) for a in ("fx", "fy", "cx", "cy")]
+                            if hasattr(intr, "fx") else list(intr))
+                    fx, fy, cx, cy = (float(v) for v in vals)
+                    intr = CameraIntrinsics(fx, fy, cx, cy, width=depth.shape[1],
+                                            height=depth.shape[0])
+                bad = intr.checked().shape != depth.shape
+        except (TypeError, ValueError, AttributeError):
             bad = True
         if bad:
             return None
-        return color, np.where(np.isfinite(depth), depth, 0).astype(np.float32)
+        return color, np.where(np.isfinite(depth), depth, 0).astype(np.float32), intr
 
     def _find_face(self, color: np.ndarray, depth: np.ndarray, intr: CameraIntrinsics,
                    idx: int):
@@ -1139,7 +1151,17 @@ def rgbd_relative_pose(
 
     Returns:
         A :class:`RelativePose` mapping points of ``a`` into ``b``.
+
+    Raises:
+        ValueError: for a bad ``refine``, different intrinsics with ``refine``, or a frame
+            whose depth, colour image and intrinsics differ in size.
     """
+    for name, fr in (("frame_a", frame_a), ("frame_b", frame_b)):
+        color, depth = np.shape(fr.color), np.shape(fr.depth)
+        size = tuple(getattr(fr.intrinsics, "shape", depth))
+        if len(depth) != 2 or depth != color[:2] or size != depth:
+            raise ValueError(f"{name}: depth {depth}, colour {color} and intrinsics {size} "
+                             "sizes (height, width) differ")
     if isinstance(refine, str):
         if refine not in _REFINE_PRESETS:
             raise ValueError("refine must be None, 'reproj', 'icp', 'joint' or a "

@@ -99,9 +99,10 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._misc import safe_div, safe_normalize, safe_sqrt
+from .._misc import any_traced, safe_div, safe_normalize, safe_sqrt
 from ..quaternion import quat_from_rotvec, quat_mul, quat_normalize, quat_rotate, quat_to_matrix
 
 __all__ = [
@@ -160,13 +161,19 @@ class PinholeIntrinsics(eqx.Module):
         return jnp.stack([jnp.stack([fx, z, cx]), jnp.stack([z, fy, cy]), jnp.stack([z, z, o])])
 
     def project(self, points: Float[ArrayLike, "*b 3"]) -> Float[Array, "*b 2"]:
-        """Pixel coordinates ``(u, v)`` of camera-frame points (NaN-free: ``z <= 0`` gives 0)."""
+        """Pixel coordinates ``(u, v)`` of camera-frame points.
+
+        A point not in front of the camera (``z <= 0``) has no image and gives ``(-1, -1)``,
+        outside every image (pixel centres lie at ``u, v >= 0``), so it never samples a pixel.
+        Values and gradients are finite for finite points.
+        """
         p = jnp.asarray(points)
         fx, fy, cx, cy = _intrinsics(self, p.dtype)
         z = p[..., 2]
-        u = safe_div(fx * p[..., 0], z) + cx
-        v = safe_div(fy * p[..., 1], z) + cy
-        return jnp.stack([u, v], axis=-1)
+        front = z > 0
+        zs = jnp.where(front, z, 1)
+        uv = jnp.stack([fx * p[..., 0] / zs + cx, fy * p[..., 1] / zs + cy], axis=-1)
+        return jnp.where(front[..., None], uv, -1)
 
 
 def _intrinsics(intrinsics: Any, dtype) -> tuple[Array, Array, Array, Array]:
@@ -494,7 +501,7 @@ def _run_icp(associate, src, src_ok, q0, t0, dist, *, num_iterations, loss, loss
     def step(q, t, i):
         x = quat_rotate(q, src) + t
         a = associate(x, dist[i])
-        a = _Assoc(a.y, a.nrm, a.ok & src_ok)
+        a = _Assoc(a.y, a.nrm, a.ok & src_ok & (dist[i] > 0))
         blocks = [_dense_rows(x, a, loss, loss_scale, dense_sigma, scaled=sparse)]
         if pairs is not None:
             blocks.append(_pair_rows(q, t, pairs, pair_loss, pair_loss_scale, pair_gate,
@@ -534,7 +541,7 @@ def _run_icp(associate, src, src_ok, q0, t0, dist, *, num_iterations, loss, loss
 
     x = quat_rotate(q, src) + t
     a = associate(x, dist[-1])
-    ok = a.ok & src_ok
+    ok = a.ok & src_ok & (dist[-1] > 0)
     r = _residuals(x, _Assoc(a.y, a.nrm, ok))
     count = jnp.sum(ok, dtype=jnp.int32)
     rmse = safe_sqrt(safe_div(jnp.sum(r * r), count.astype(dtype)))
@@ -581,6 +588,11 @@ def _common_setup(source, source_valid, initial_rotation, initial_translation,
             f"{tuple(q0.shape)} and {tuple(t0.shape)}"
         )
     q0 = quat_normalize(q0)
+    if not any_traced(max_correspondence_distance):
+        d = np.asarray(max_correspondence_distance, np.float64)
+        if not (np.isfinite(d).all() and (d > 0).all()):
+            raise ValueError("max_correspondence_distance must be finite and > 0, got "
+                             f"{max_correspondence_distance!r}")
     dist = jnp.asarray(max_correspondence_distance, dtype)
     n_dist = max(int(num_iterations), 1)
     if dist.ndim == 0:
@@ -701,7 +713,7 @@ def _nearest_neighbour_associator(tgt: Array, nrm: Array, tgt_ok: Array, n: int,
     tgt_c = jnp.where(tgt_ok[:, None], tgt - centre, 0)
     half_sq = jnp.where(tgt_ok, 0.5 * jnp.sum(tgt_c * tgt_c, axis=-1), jnp.inf)
     # bounds of |y|^2 / 2 and |y| over the valid targets, for the rounding tolerance below
-    sq_max = jnp.max(jnp.where(tgt_ok, half_sq, 0))
+    sq_max = jnp.max(jnp.where(tgt_ok, half_sq, 0), initial=0)
     r_max = jnp.sqrt(2 * sq_max)
     eps = jnp.finfo(dtype).eps
     chunk = min(chunk_size, max(n, 1))
@@ -782,7 +794,8 @@ def icp_point_to_plane(
 
     Arguments:
         source: source points ``(n, 3)``; non-finite rows are ignored.
-        target: target points ``(m, 3)``; non-finite rows are ignored.
+        target: target points ``(m, 3)``; non-finite rows are ignored. ``m = 0`` is allowed
+            (no dense correspondence: only ``point_pairs`` / ``pixel_pairs`` count).
         target_normals: unit normals at the target points ``(m, 3)`` (zero = no normal: the
             point is ignored), e.g. from :func:`estimate_normals`.
         source_valid, target_valid: optional masks for padded point sets.
@@ -791,6 +804,9 @@ def icp_point_to_plane(
         num_iterations: maximum number of Gauss-Newton steps (static).
         max_correspondence_distance: rejection distance (m); a scalar or one value per
             iteration (a coarse-to-fine schedule). The final inlier set uses the last value.
+            Must be finite and ``> 0`` (``ValueError``); a traced value ``<= 0`` or NaN
+            (inside ``jit``) accepts no correspondence (``TOO_FEW_CORRESPONDENCES`` unless
+            the pairs suffice).
         loss: ``"l2"``, ``"huber"``, ``"cauchy"`` or ``"tukey"`` (IRLS; static).
         loss_scale: scale of the robust loss (m).
         tolerance: convergence threshold on the step length ``|(L theta, delta)|`` (m). The
@@ -918,7 +934,8 @@ def icp_projective(
         source: source points ``(n, 3)`` (e.g. ``backproject(depth_k)[mask]`` or the
             reshaped organised cloud with ``source_valid``); non-finite rows are ignored.
         target_points: organised target cloud ``(h, w, 3)`` in the target camera frame
-            (e.g. :func:`backproject`); valid where finite and ``z > 0``.
+            (e.g. :func:`backproject`); valid where finite and ``z > 0``; may be empty
+            (``h w = 0``: no dense correspondence).
         target_normals: ``(h, w, 3)`` unit normals (zero = none), e.g. :func:`estimate_normals`.
         intrinsics: the target camera's :class:`PinholeIntrinsics` (or ``(fx, fy, cx, cy)``).
         target_valid: optional ``(h, w)`` mask (e.g. a face region).
@@ -958,8 +975,8 @@ def icp_projective(
     n = src.shape[0]
 
     def associate(x: Array, max_dist: Array) -> _Assoc:
-        if n == 0:
-            return _Assoc(x, x, jnp.zeros(n, bool))
+        if n == 0 or h * w == 0:
+            return _Assoc(jnp.zeros_like(x), jnp.zeros_like(x), jnp.zeros(n, bool))
         z = x[:, 2]
         front = z > 0
         zs = jnp.where(front, z, 1)

@@ -509,6 +509,36 @@ def test_float32_accuracy():
     np.testing.assert_allclose(np.asarray(res.translation), t, atol=1e-5)
 
 
+def test_float32_large_coordinates_do_not_overflow():
+    # the same similarity problem as test_float32_accuracy, in units 1e19 / 1e25 times smaller:
+    # squared coordinates exceed float32's range (3.4e38) but the fit is scale-free, so the
+    # result keeps the float32 accuracy of unit coordinates (measured at 1, 1e19 and 1e25:
+    # rotation <= 1.1e-6 rad, scale 5e-7, translation / unit 4.4e-7, rms / unit 1.5e-6; bounds
+    # about 10x that)
+    rng = np.random.default_rng(9)
+    src = rng.uniform(-1, 1, size=(10, N, 3))
+    rots = Rotation.random(10, random_state=rng).as_matrix()
+    t = rng.normal(size=(10, 3))
+    tgt = 1.5 * np.einsum("bij,bnj->bni", rots, src) + t[:, None, :]
+    for unit in (1e19, 1e25):
+        res = _align(jnp.asarray(src * unit, jnp.float32), jnp.asarray(tgt * unit, jnp.float32),
+                     with_scale=True)
+        np.testing.assert_array_equal(np.asarray(res.status), OK)
+        assert max(rot_angle(res.rotation[i], rots[i]) for i in range(10)) < 1e-5
+        np.testing.assert_allclose(np.asarray(res.scale), 1.5, atol=5e-6)
+        np.testing.assert_allclose(np.asarray(res.translation) / unit, t, atol=5e-6)
+        assert np.all(np.asarray(res.rms) / unit < 2e-5)
+        # one point 10x farther out: a finite residual (no overflow in its square)
+        far = src[0] * unit
+        far[0] = 10 * unit
+        one = _align(jnp.asarray(far, jnp.float32), jnp.asarray(tgt[0] * unit, jnp.float32))
+        assert np.isfinite(float(one.rms)) and float(one.rms) > 0
+    g = jax.grad(lambda a: _align(a, a * 2, with_scale=True).rms
+                 + jnp.sum(_align(a, a * 2, with_scale=True).rotation))(
+        jnp.asarray(src[0] * 1e19, jnp.float32))
+    assert np.all(np.isfinite(np.asarray(g)))
+
+
 # ---------------------------------------------------------------------------------- RANSAC
 def _ransac_problem(seed, n=M, outlier_frac=0.4, noise=2e-4):
     """Head-sized landmark cloud (m), 0.2 mm noise, gross outliers displaced by 2-30 cm."""

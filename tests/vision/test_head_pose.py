@@ -83,6 +83,43 @@ def test_match_descriptors_l2():
     np.testing.assert_array_equal(perm[np.asarray(m.index)], np.arange(20))
 
 
+def test_match_descriptors_l2_non_finite_rows_are_invalid_only_themselves():
+    # a NaN / inf in one descriptor invalidates that row only: the same matches as when the
+    # row is masked out (and every other row still matches its noisy copy)
+    rng = np.random.default_rng(4)
+    a = rng.uniform(0, 255, (12, 128)).astype(np.float32)
+    b = a + rng.normal(0, 1, a.shape).astype(np.float32)
+    a[3, 7], a[8, 0], b[5, 100] = np.nan, np.inf, -np.inf
+    qv, tv = np.ones(12, bool), np.ones(12, bool)
+    qv[[3, 8]], tv[5] = False, False
+    m = Fe.match_descriptors(a, b, metric="l2")
+    ref = Fe.match_descriptors(a, b, qv, tv, metric="l2")
+    np.testing.assert_array_equal(np.asarray(m.valid), np.asarray(ref.valid))
+    np.testing.assert_array_equal(np.asarray(m.index), np.asarray(ref.index))
+    expect = qv & (np.arange(12) != 5)  # query 5's partner is the invalid train row
+    np.testing.assert_array_equal(np.asarray(m.valid), expect)
+    np.testing.assert_array_equal(np.asarray(m.index)[expect], np.arange(12)[expect])
+    assert not np.isnan(np.asarray(m.distance)).any()
+
+
+def test_lift_keypoints_non_finite_pixels_give_zero_points_and_finite_gradients():
+    import jax
+    import jax.numpy as jnp
+
+    k = R.CameraIntrinsics(500.0, 500.0, 32.0, 24.0, width=64, height=48)
+    depth = jnp.ones((48, 64))
+    uv = jnp.array([[10.0, 10.0], [np.nan, 5.0], [np.inf, 5.0], [5.0, -np.inf]])
+    pts, ok = Fe.lift_keypoints(uv, depth, k, np.array([True, True, False, True]))
+    np.testing.assert_array_equal(np.asarray(ok), [True, False, False, False])
+    np.testing.assert_array_equal(np.asarray(pts)[1:], 0.0)
+    np.testing.assert_allclose(np.asarray(pts)[0], [(10 - 32) / 500, (10 - 24) / 500, 1.0])
+    g_uv, g_d = jax.grad(lambda u, d: jnp.sum(Fe.lift_keypoints(u, d, k)[0]),
+                         argnums=(0, 1))(uv, depth)
+    assert np.isfinite(np.asarray(g_uv)).all() and np.isfinite(np.asarray(g_d)).all()
+    np.testing.assert_array_equal(np.asarray(g_uv)[1:], 0.0)
+    np.testing.assert_allclose(np.asarray(g_uv)[0], [1 / 500, 1 / 500])
+
+
 def test_lift_keypoints_reference_and_rejections():
     k = R.CameraIntrinsics(500.0, 510.0, 31.5, 23.5, width=64, height=48)
     depth = np.full((48, 64), 1.5, np.float32)
@@ -285,6 +322,40 @@ def test_status_on_bad_frames_and_recovery(biwi, detectors):
     assert est.process(black, np.zeros_like(f.depth), 1.0).status == H.HeadPoseStatus.NO_DEPTH
     r = est.process_frame(frames["unknown"])
     assert r.ok and r.keyframe == 0
+
+
+def test_per_frame_intrinsics_are_checked_like_the_constructors(biwi, detectors):
+    # invalid per-frame intrinsics give INVALID_INPUT (as a wrong size always did), not a
+    # misleading alignment status or an exception; (fx, fy, cx, cy) works as the full record
+    frames, _ = biwi
+    f = frames["00054"]
+    k = f.intrinsics
+    est = H.HeadPoseEstimator(k, detector=detectors["opencv"])
+    for bad in (R.CameraIntrinsics(0.0, k.fy, k.cx, k.cy, k.width, k.height),
+                R.CameraIntrinsics(np.nan, k.fy, k.cx, k.cy, k.width, k.height),
+                R.CameraIntrinsics(k.fx, k.fy, k.cx, np.inf, k.width, k.height),
+                R.CameraIntrinsics(k.fx, k.fy, k.cx, k.cy, k.width // 2, k.height // 2),
+                (k.fx, k.fy, k.cx), "abcd"):
+        r = est.process(f.color, f.depth, 0.0, bad)
+        assert r.status == H.HeadPoseStatus.INVALID_INPUT and np.isnan(r.position).all()
+    assert est.num_keyframes == 0
+    ref = est.process(f.color, f.depth, 0.0, k)
+    est.reset()
+    r = est.process(f.color, f.depth, 0.0, (k.fx, k.fy, k.cx, k.cy))
+    assert ref.ok and r.ok
+    np.testing.assert_array_equal(r.position, ref.position)
+    np.testing.assert_array_equal(r.quaternion, ref.quaternion)
+
+
+def test_relative_pose_rejects_frames_of_mismatched_sizes():
+    k = R.CameraIntrinsics(500.0, 500.0, 31.5, 23.5, width=64, height=48)
+    good = R.RGBDFrame(np.zeros((48, 64, 3), np.uint8), np.ones((48, 64), np.float32), k)
+    for bad in (good._replace(depth=good.depth[:24]), good._replace(color=good.color[:, :32]),
+                good._replace(intrinsics=k.scaled(0.5))):
+        with pytest.raises(ValueError, match="frame_a: depth .* sizes"):
+            H.rgbd_relative_pose(bad, good, refine=None)
+        with pytest.raises(ValueError, match="frame_b: depth .* sizes"):
+            H.rgbd_relative_pose(good, bad, refine=None)
 
 
 def test_black_colour_with_depth_uses_tracking_or_depth(biwi, detectors):

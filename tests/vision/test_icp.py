@@ -595,6 +595,61 @@ def test_no_valid_points_gives_too_few_correspondences_with_finite_values():
     assert int(res.status) == TOO_FEW_CORRESPONDENCES
 
 
+def test_an_empty_target_is_like_a_fully_masked_one():
+    # an empty target (0 points / a 0x0 depth image), as an empty source: no dense
+    # correspondence, so only the pairs count (the weighted Kabsch problem of align) and
+    # without pairs the status is TOO_FEW_CORRESPONDENCES with the initial guess returned
+    s, y, w = pair_problem(Q1, T1, noise=0.01)
+    ref = align(s, y, w)
+    src = SOURCE1[:50]
+    empty, empty_img = np.zeros((0, 3)), np.zeros((0, 0, 3))
+    for fit in (lambda **kw: icp_point_to_plane(src, empty, empty, **kw),
+                lambda **kw: icp_projective(src, empty_img, empty_img, K, **kw)):
+        res = fit(point_pairs=(s, y, w), tolerance=1e-12, num_iterations=30)
+        assert int(res.status) == OK and int(res.num_inliers) == 0
+        np.testing.assert_allclose(res.rotation, ref.quaternion, atol=1e-10)
+        np.testing.assert_allclose(res.translation, ref.translation, atol=1e-10)
+        res = fit()
+        assert int(res.status) == TOO_FEW_CORRESPONDENCES and int(res.num_inliers) == 0
+        np.testing.assert_array_equal(res.rotation, [1, 0, 0, 0])
+        np.testing.assert_array_equal(res.translation, [0, 0, 0])
+        assert float(res.rmse) == 0 and not np.any(np.asarray(res.inlier_mask))
+
+
+def test_max_correspondence_distance_must_be_positive():
+    tgt, nrm = TARGET.reshape(-1, 3), NORMALS.reshape(-1, 3)
+    for bad in (-0.02, 0.0, np.nan, np.inf, [0.1, -0.1, 0.1]):
+        with pytest.raises(ValueError, match="max_correspondence_distance must be finite"):
+            icp_point_to_plane(SOURCE1, tgt, nrm, num_iterations=3,
+                               max_correspondence_distance=bad)
+        with pytest.raises(ValueError, match="max_correspondence_distance must be finite"):
+            icp_projective(SOURCE1, TARGET, NORMALS, K, num_iterations=3,
+                           max_correspondence_distance=bad)
+    # traced (inside jit) a distance <= 0 or NaN accepts no correspondence; a valid one works
+    for d, status in ((-0.1, TOO_FEW_CORRESPONDENCES), (np.nan, TOO_FEW_CORRESPONDENCES),
+                      (0.1, OK)):
+        res = run_nn(SOURCE1, max_correspondence_distance=np.full(30, d))
+        assert int(res.status) == status, (d, IcpStatus.name(res.status))
+        assert (int(res.num_inliers) > 0) == (status == OK)
+
+
+def test_project_never_puts_points_off_the_front_on_a_pixel():
+    rng = np.random.default_rng(7)
+    p = rng.normal(0, 1, (200, 3))
+    uv = np.asarray(K.project(p))
+    front = p[:, 2] > 0
+    np.testing.assert_allclose(uv[front, 0], K.fx * p[front, 0] / p[front, 2] + K.cx,
+                               rtol=1e-12)
+    np.testing.assert_allclose(uv[front, 1], K.fy * p[front, 1] / p[front, 2] + K.cy,
+                               rtol=1e-12)
+    # behind the camera and on its plane (z = 0): off every image (rounded pixel < 0)
+    behind = np.concatenate([p[~front], [[0.1, 0.2, 0.0], [0.0, 0.0, 0.0]]])
+    uv_b = np.asarray(K.project(behind))
+    assert np.all(np.round(uv_b) < 0)
+    g = jax.grad(lambda x: jnp.sum(K.project(x)))(jnp.asarray(behind))
+    assert np.all(np.isfinite(np.asarray(g)))
+
+
 def test_budget_exhaustion_reports_not_converged():
     res = run_nn(SOURCE1, num_iterations=3, max_correspondence_distance=0.1, tolerance=0.0)
     assert int(res.status) == NOT_CONVERGED and int(res.num_iterations) == 3
