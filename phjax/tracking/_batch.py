@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jit import jit
+from .._misc import any_traced
 from ..batch import _leading_sharding, _sharded_function
 from ._shapes import MIN_FRAMES, MIN_RENDER, PAD_STEP, bounded_cache, size_class
 
@@ -91,23 +92,22 @@ def _local(config, times, positions, quaternions, render_times, *, core, hold_en
 _local_jit = jit(_local, static_argnames=("core", "hold_end", "dtype"))
 
 
-@jit
-def _check_values(times, render_times):
-    """Flags of bad batch input: a real frame after padding, times not strictly increasing,
-    infinite times, infinite render times."""
-    nan = jnp.isnan(times)
-    after_pad = jnp.any(nan[..., :-1] & ~nan[..., 1:])
-    dt = jnp.diff(times, axis=-1)
-    not_increasing = jnp.any(~nan[..., 1:] & ~(dt > 0))
-    return jnp.stack([after_pad, not_increasing, jnp.any(jnp.isinf(times)),
-                      jnp.any(jnp.isinf(render_times))])
+def _flags(xp, times, render_times):
+    """Flags of bad batch input (``xp``: NumPy or jax.numpy): a real frame after padding,
+    times not strictly increasing, infinite times, infinite render times."""
+    nan = xp.isnan(times)
+    after_pad = xp.any(nan[..., :-1] & ~nan[..., 1:])
+    dt = xp.diff(times, axis=-1)
+    not_increasing = xp.any(~nan[..., 1:] & ~(dt > 0))
+    return xp.stack([after_pad, not_increasing, xp.any(xp.isinf(times)),
+                     xp.any(xp.isinf(render_times))])
 
 
-def _as_array(x):
-    return x if isinstance(x, jax.Array) else jnp.asarray(np.asarray(x))
+#: :func:`_flags` of device arrays, without copying them to the host
+_check_values = jit(functools.partial(_flags, jnp))
 
 
-def _pad_to_class(times, positions, quaternions, render_times):
+def _pad_to_class(xp, times, positions, quaternions, render_times):
     """A padded batch padded further, to its size class (NaN frames and render times)."""
     n, m = times.shape[-1], render_times.shape[-1]
     dn, dm = size_class(n, MIN_FRAMES) - n, size_class(m, MIN_RENDER) - m
@@ -115,18 +115,34 @@ def _pad_to_class(times, positions, quaternions, render_times):
     def pad(x, axis, k):
         widths = [(0, 0)] * x.ndim
         widths[axis] = (0, k)
-        return jnp.pad(x, widths, constant_values=jnp.nan)
+        return xp.pad(x, widths, constant_values=np.nan)
 
     return (pad(times, -1, dn), pad(positions, -2, dn), pad(quaternions, -2, dn),
             pad(render_times, -1, dm)), m
 
 
+def _relative_on_host(times, render_times):
+    """Times and render times relative to each recording's first frame, in float64 on the
+    host (absolute epoch times keep their precision when the program runs in float32); render
+    times per recording then."""
+    origin = np.where(np.isfinite(times[..., :1]), times[..., :1], 0.0)
+    render = np.broadcast_to(render_times, times.shape[:-1] + render_times.shape[-1:])
+    return times - origin, render - origin
+
+
 def run_batch(core, config, times, positions, quaternions, render_times, dtype, hold_end=False):
     """Validate a padded batch (shapes on the host, values with one small reduction), then run
     the compiled batch program of the one-recording ``core`` (``shard_map`` over the mesh if
-    the inputs are batch-sharded; else padded to the batch's size class first)."""
+    the inputs are batch-sharded; else padded to the batch's size class first).
+
+    Host inputs (NumPy arrays, lists) are checked, made relative to each recording's first
+    time in float64 and padded on the host: one compiled program per size class and dtype,
+    whatever the lengths in it. Device arrays (``jax.Array``, sharded or not) stay there."""
+    inputs = (times, positions, quaternions, render_times)
+    on_host = not any(isinstance(x, jax.Array) for x in inputs)
+    xp = np if on_host else jnp
     times, positions, quaternions, render_times = (
-        _as_array(x) for x in (times, positions, quaternions, render_times))
+        np.asarray(x, np.float64) if on_host else jnp.asarray(x) for x in inputs)
     b, n = times.shape[:-1], times.shape[-1]
     if positions.shape != b + (n, 3) or quaternions.shape != b + (n, 4):
         raise ValueError("expected times (*B, N), positions (*B, N, 3), quaternions (*B, N, 4); "
@@ -136,7 +152,8 @@ def run_batch(core, config, times, positions, quaternions, render_times, dtype, 
                          f"got shape {render_times.shape}")
     if n < 1:
         raise ValueError("need at least one measurement")
-    flags = np.asarray(_check_values(times, render_times))
+    flags = np.asarray(_flags(np, times, render_times) if on_host
+                       else _check_values(times, render_times))
     for bad, msg in zip(flags, ("padding (NaN times) must come after every real frame",
                                 "measurement times must be strictly increasing in each recording",
                                 "measurement times must be finite or NaN (padding)",
@@ -144,6 +161,8 @@ def run_batch(core, config, times, positions, quaternions, render_times, dtype, 
         if bad:
             raise ValueError(msg)
     dtype = jnp.dtype(jnp.zeros((), float).dtype if dtype is None else dtype).name
+    if on_host:
+        times, render_times = _relative_on_host(times, render_times)
     args = (config, times, positions, quaternions, render_times)
     sharding = _leading_sharding(args[1:])
     if sharding is not None:
@@ -159,11 +178,16 @@ def run_batch(core, config, times, positions, quaternions, render_times, dtype, 
         fn = _sharded_function(_local, sharding, args, static)
     else:
         fn = _local_jit
-        padded, m = _pad_to_class(*args[1:])
+        padded, m = _pad_to_class(xp, *args[1:])
+        if on_host:  # one transfer in the program's dtype (the times are relative now)
+            padded = tuple(jax.device_put(x.astype(dtype)) for x in padded)
         args = (config, *padded)
     key = (jax.tree.structure(config), core, dtype, tuple((a.shape, a.dtype) for a in args[1:]))
     bounded_cache(fn, key)
     if sharding is not None:
         return fn(*args)
     p, q = fn(*args, **static)
-    return p[..., :m, :], q[..., :m, :]
+    if any_traced(p):  # computed from traced parameters (jax.grad of a call)
+        return p[..., :m, :], q[..., :m, :]
+    # sliced on the host: a slice of a device array compiles a program for every length
+    return tuple(jax.device_put(np.asarray(x)[..., :m, :]) for x in (p, q))

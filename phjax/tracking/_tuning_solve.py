@@ -17,6 +17,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 from .._jit import filter_jit
+from .._misc import any_traced
 
 from ._tuning_bfgs import _bfgs
 from ._tuning_data import TuningData, prepare_recordings
@@ -129,11 +130,28 @@ def make_problem(
     _check_positive(config, paths)
     if not (float(lam) >= 0 and float(position_weight) >= 0 and float(rotation_weight) >= 0):
         raise ValueError("lam and the weights must be non-negative")
+    _check_something_scored(data, float(position_weight), float(rotation_weight))
     dtype = data.times.dtype
     return TuningProblem(data, _arrays_config(config, dtype), parameters, paths,
                          jnp.asarray(lam, dtype),
                          jnp.asarray(position_weight, dtype), jnp.asarray(rotation_weight, dtype),
                          normalize)
+
+
+def _check_something_scored(data: TuningData, position_weight: float, rotation_weight: float):
+    """``ValueError`` when no recording scores a channel of positive weight (the loss would be
+    0 whatever the parameters, and the solve "converge" at once)."""
+    if any_traced(data.reference):
+        return
+    ref = np.asarray(data.reference).reshape(-1, 4)
+    avail = np.isfinite(ref) & (ref > 0)
+    n_pos = int(np.sum(avail[:, 0] & avail[:, 2]))
+    n_rot = int(np.sum(avail[:, 1] & avail[:, 3]))
+    if not ((n_pos and position_weight > 0) or (n_rot and rotation_weight > 0)):
+        raise ValueError(
+            f"nothing to tune against: position_weight {position_weight:g} (positions scored in "
+            f"{n_pos} recording(s)), rotation_weight {rotation_weight:g} (orientations scored in "
+            f"{n_rot}); give a positive weight to a channel the recordings score")
 
 
 @filter_jit

@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
@@ -69,6 +70,61 @@ def test_batch_input_errors():
         pj.track(t, p[:, :3], q, np.zeros(3))
     with pytest.raises(ValueError, match="render_times"):
         pj.track(t, p, q, np.zeros((2, 3)))
+
+
+def _two_recordings(t0: float):
+    """Two recordings of 100 and 150 frames at 30 Hz from ``t0`` (a smooth motion), render
+    times at 120 Hz, padded into one batch."""
+    recs = []
+    for n in (100, 150):
+        t = t0 + np.arange(n) / 30.0
+        u = t - t0
+        p = np.stack([np.sin(u), np.cos(u), 0.1 * u], -1)
+        q = np.stack([np.cos(0.15 * u), 0 * u, np.sin(0.15 * u), 0 * u], -1)
+        recs.append((t, p, q, t0 + np.arange(1 / 30, (n - 1) / 30, 1 / 120)))
+    return recs, pj.pad_recordings(*[list(x) for x in zip(*recs)])
+
+
+@pytest.mark.parametrize("fn", [pj.track, pj.reconstruct])
+def test_float32_batch_of_epoch_times_equals_one_at_a_time(fn):
+    """In float32 a batch made its times relative inside the program, after the float32
+    conversion: Unix times failed ("not strictly increasing") and a 1e5 s offset moved the
+    result by 6 mm. Now they are made relative on the host in float64, as for one recording:
+    a batch equals each recording alone (measured up to 2.4e-6 m: float32 rounding of two
+    differently compiled programs; bound 1e-5 m)."""
+    for t0 in (1e5, 1.7e9):
+        recs, batch = _two_recordings(t0)
+        with jax.enable_x64(False):  # as users run it (the suite runs with x64 on)
+            got = fn(*batch)
+            wants = [fn(*rec) for rec in recs]
+        for i, (rec, want) in enumerate(zip(recs, wants)):
+            m = len(rec[3])
+            np.testing.assert_allclose(np.asarray(got[0])[i, :m], np.asarray(want[0]),
+                                       rtol=0, atol=1e-5)
+            np.testing.assert_allclose(np.abs(np.sum(np.asarray(got[1])[i, :m]
+                                                     * np.asarray(want[1]), -1)), 1, atol=1e-5)
+
+
+def test_batches_in_one_size_class_compile_nothing_more():
+    """A batch of other lengths in the same size class compiles nothing (was 22 small programs
+    per new length: device-side checks, padding and slices; 0.5-0.9 s a call)."""
+    import jax.monitoring
+
+    recs, batch = _two_recordings(0.0)
+    pj.track(*batch)
+    shorter = pj.pad_recordings(*[[x[: len(x) - 7] for x in col] for col in zip(*recs)])
+    compiles = []
+
+    def on_duration(event, duration, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(duration)
+
+    jax.monitoring.register_event_duration_secs_listener(on_duration)
+    try:
+        pj.track(*shorter)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(on_duration)
+    assert not compiles, f"{len(compiles)} programs compiled"
 
 
 @pytest.mark.slow  # about 4 CPU minutes: six compilations of the tracker scan and the shape solver

@@ -519,6 +519,20 @@ def test_nothing_to_tune_against_is_an_error():
     assert MIN_SCORED >= 4
 
 
+def test_no_weight_on_a_scored_channel_is_an_error(data):
+    """An orientation-only recording tuned with rotation_weight 0 (or both weights 0): the loss
+    was 0 whatever the parameters and tune_tracker reported "converged" with the start config
+    (found by probing). Now a ValueError naming the weights and what is scored."""
+    t, p, q = _ground_truth()
+    rot_only = tuning.prepare_recordings([(t, np.full_like(p, np.nan), q)])
+    with pytest.raises(ValueError, match=r"nothing to tune against: position_weight 1 \(positions "
+                       r"scored in 0 recording\(s\)\), rotation_weight 0 \(orientations scored in 1\)"):
+        tuning.tune_tracker(rot_only, rotation_weight=0.0, max_steps=2)
+    with pytest.raises(ValueError, match="nothing to tune against"):
+        tuning.make_problem(data, position_weight=0.0, rotation_weight=0.0)
+    tuning.make_problem(data, position_weight=0.0)  # orientation alone is something
+
+
 def test_tuning_data_of_simulated_frames_equals_prepare_recordings(data):
     got = tuning.tuning_data([_simulated(_ground_truth(), 0)])
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(data)):
