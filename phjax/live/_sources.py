@@ -723,9 +723,9 @@ class VideoSource(Source):
                 self.estimator = _with_models(lambda: MonocularHeadPose(
                     intr, ipd, method=self.monocular, head_size=head,
                     model_dir=self.model_dir))
-            except (ImportError, SourceError) as e:  # a missing model or onnxruntime
-                self.close()
-                raise SourceError(str(e)) from None
+            except (ImportError, ValueError) as e:  # a missing or corrupt model, onnxruntime
+                self.close()  # the capture released
+                raise SourceError(str(e).splitlines()[0]) from None
         self.estimator.process(frame, 0.0)  # warm-up
         self.estimator.reset()
 
