@@ -72,7 +72,13 @@ per frame, and ``confidence``: an inverse-variance weight relative to a well-see
 on the AFLW faces the network predicts 1.6-3.2 degrees and 2-5 %). ``phjax live`` divides the
 measurement noise of the filter (:data:`MONOCULAR_NOISE`) by ``sqrt(confidence)`` for that
 frame, so a doubtful frame counts less instead of jerking the stream. The landmark method has
-no per-frame uncertainty: its confidence is 1 for every pose that passes the reprojection check.
+no per-frame uncertainty: its confidence is the fraction of the face inside the image, 1 for a
+face wholly in view: the smaller of the area fractions inside the image of YuNet's box and of
+the face's extent around the landmarks (their box grown on every side by half the eye-to-mouth
+distance, :data:`LANDMARK_FACE_MARGIN`; a box wholly outside is ``ALIGNMENT_FAILED``). A face
+cut off by the image edge has landmarks guessed beyond what the detector saw (a chin cut off
+read a face up to 2.2 times as far away) and so counts less. Measured on the AFLW photos
+shifted down by 150-200 px (chin and mouth leaving the frame): 0.60-0.96; unshifted: 1.
 
 Face model (:func:`face_model`, landmark method)
 ------------------------------------------------
@@ -104,6 +110,7 @@ Microsoft FaceSynthetics, research-only). Treat ``head-pose-0.4-small-int8.onnx`
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from typing import Any, NamedTuple
 
@@ -119,6 +126,9 @@ __all__ = [
     "DEFAULT_HEAD_SIZE",
     "DEFAULT_IPD",
     "DETECTOR_BOX_SCALE",
+    "HEAD_SIZE_RANGE",
+    "IPD_RANGE",
+    "LANDMARK_FACE_MARGIN",
     "METHODS",
     "MONOCULAR_NOISE",
     "MonocularHeadPose",
@@ -132,6 +142,12 @@ __all__ = [
 DEFAULT_IPD = 0.063
 #: default assumed vertical head size, m (opentrack's ``HEAD_SIZE_MM``)
 DEFAULT_HEAD_SIZE = 0.20
+#: accepted assumed vertical head size, m (the same range as ``phjax live --head-size``):
+#: values outside are typing errors (millimetres, a missing decimal point) and gave inf / NaN
+#: poses reported as OK
+HEAD_SIZE_RANGE = (0.05, 0.5)
+#: accepted assumed inter-pupillary distance, m (the same range as ``phjax live --ipd``)
+IPD_RANGE = (0.03, 0.1)
 #: measurement noise of monocular poses for the tracker: position std (m), rotation std (rad),
 #: for a frame of confidence 1
 MONOCULAR_NOISE = (0.015, math.radians(3.0))
@@ -163,8 +179,8 @@ def face_model(ipd: float = DEFAULT_IPD, center_depth: float | None = None) -> n
     Returns:
         ``(5, 3)`` float64.
     """
-    if not ipd > 0:
-        raise ValueError(f"ipd must be positive, got {ipd}")
+    if not (ipd > 0 and math.isfinite(ipd)):
+        raise ValueError(f"ipd must be positive and finite, got {ipd}")
     depth = 1.43 * ipd if center_depth is None else float(center_depth)
     return _MODEL * float(ipd) - np.array([0.0, 0.0, depth])
 
@@ -218,6 +234,38 @@ def _quat_from_matrix(r: np.ndarray) -> np.ndarray:
     return q if q[0] >= 0 else -q
 
 
+def _number_between(x: Any, lo: float, hi: float) -> bool:
+    """A finite real number (not a bool or a string) in ``[lo, hi]``."""
+    if isinstance(x, bool) or not isinstance(x, numbers.Real):
+        return False
+    v = float(x)
+    return math.isfinite(v) and lo <= v <= hi
+
+
+def _box_inside_fraction(box: Any, shape: tuple[int, int]) -> float:
+    """Fraction of the area of box ``(x, y, w, h)`` inside an image of ``shape`` ``(H, W)``."""
+    x, y, w, h = (float(v) for v in box)
+    if not (w > 0 and h > 0):
+        return 0.0
+    iw = max(min(x + w, shape[1]) - max(x, 0.0), 0.0)
+    ih = max(min(y + h, shape[0]) - max(y, 0.0), 0.0)
+    return iw * ih / (w * h)
+
+
+#: landmark method: the face's extent is the box around its five landmarks grown on every side
+#: by this fraction of the eye-to-mouth distance (the forehead, cheeks and chin; module docs)
+LANDMARK_FACE_MARGIN = 0.5
+
+
+def _landmark_extent(landmarks: np.ndarray) -> np.ndarray:
+    """``(x, y, w, h)``: the landmarks' box grown by :data:`LANDMARK_FACE_MARGIN` times the
+    distance from the eyes' midpoint to the mouth corners' midpoint."""
+    lm = np.asarray(landmarks, np.float64).reshape(5, 2)
+    m = LANDMARK_FACE_MARGIN * float(np.linalg.norm(lm[3:].mean(0) - lm[:2].mean(0)))
+    lo, hi = lm.min(0) - m, lm.max(0) + m
+    return np.concatenate([lo, hi - lo])
+
+
 def _positive_w(q: np.ndarray) -> np.ndarray:
     q = np_qnormalize(q)
     return q if q[0] >= 0 else -q
@@ -233,7 +281,7 @@ class MonocularResult(NamedTuple):
         status: :class:`phjax.vision.HeadPoseStatus` (``OK``, ``NO_FACE``,
             ``ALIGNMENT_FAILED``, ``INVALID_INPUT``).
         confidence: weight of the frame for a filter in ``[0, 1]`` (0 without a pose; module
-            docs).
+            docs; landmark method: the fraction of the face inside the image).
         rotation_std: predicted rotation std (RMS over the axes), rad (NaN: not predicted).
         position_std: ``(3,)`` predicted position std per camera axis, m (NaN: not predicted).
         crop_quaternion: ``(4,)`` the rotation relative to the viewing ray through the head
@@ -273,9 +321,11 @@ class MonocularHeadPose:
     Arguments:
         intrinsics: the camera's intrinsics (see :func:`intrinsics_from_fov` for an
             uncalibrated webcam).
-        ipd: assumed inter-pupillary distance, m (landmark method; default 0.063).
+        ipd: assumed inter-pupillary distance, m (landmark method; default 0.063; within
+            :data:`IPD_RANGE`, 0.03-0.1).
         method: ``"net"`` (default) or ``"landmarks"`` (the five-point PnP fallback).
-        head_size: assumed vertical head size, m (net method; default 0.20).
+        head_size: assumed vertical head size, m (net method; default 0.20; within
+            :data:`HEAD_SIZE_RANGE`, 0.05-0.5).
         detector: ``"yunet"`` (default), ``"localizer"`` (opentrack's head localizer; net
             method only) or a ready :class:`FaceDetector`.
         model_dir: model cache of YuNet and the networks (default
@@ -294,6 +344,8 @@ class MonocularHeadPose:
     there is no face or the pose fails its checks; never raises for bad frame content).
 
     Raises:
+        ValueError: an argument is out of range (``ipd``, ``head_size`` outside their ranges;
+            ``max_rotation_std``, ``max_reprojection`` not finite and positive).
         ModelNotFoundError: a model file is not in the cache.
         ImportError: OpenCV or (net method) onnxruntime is not installed.
     """
@@ -305,8 +357,14 @@ class MonocularHeadPose:
                  threads: int = 1):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-        if not head_size > 0:
-            raise ValueError(f"head_size must be positive, got {head_size}")
+        for name, value, (lo, hi) in (("head_size", head_size, HEAD_SIZE_RANGE),
+                                      ("ipd", ipd, IPD_RANGE)):
+            if not _number_between(value, lo, hi):
+                raise ValueError(f"{name} must be between {lo:g} and {hi:g} m, got {value!r}")
+        for name, value in (("max_rotation_std", max_rotation_std),
+                            ("max_reprojection", max_reprojection)):
+            if not _number_between(value, 0.0, math.inf) or not value > 0:
+                raise ValueError(f"{name} must be a finite positive number, got {value!r}")
         if detector is None:
             detector = "yunet"
         if isinstance(detector, str) and detector not in DETECTOR_BOX_SCALE:
@@ -480,13 +538,19 @@ class MonocularHeadPose:
         if rms > self.max_reprojection * max(eye_px, 1.0):
             self._last = None
             return self._nan(t, HeadPoseStatus.ALIGNMENT_FAILED, **failed)
+        shape = self.intrinsics.shape
+        confidence = min(_box_inside_fraction(face.box, shape),
+                         _box_inside_fraction(_landmark_extent(uv), shape))
+        if not confidence > 0:  # a box wholly outside the image (a detector passed in)
+            self._last = None
+            return self._nan(t, HeadPoseStatus.ALIGNMENT_FAILED, **failed)
         self._last = (rvec, tvec)
         r, _ = cv2.Rodrigues(rvec)
         q = _quat_from_matrix(r)
         position = np.asarray(tvec, np.float64).ravel()
         crop = _positive_w(np_qmul(np_qconj(ray_quaternion(position)), q))
         total = time.perf_counter() - t_start
-        return MonocularResult(float(t), position, q, HeadPoseStatus.OK, 1.0, float("nan"),
+        return MonocularResult(float(t), position, q, HeadPoseStatus.OK, confidence, float("nan"),
                                np.full(3, np.nan), crop, face, "detector",
                                np.asarray(face.box, np.float64), "landmarks",
                                {"detect": t_det, "pnp": total - t_det, "total": total})

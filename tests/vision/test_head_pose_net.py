@@ -399,3 +399,68 @@ def test_landmark_fallback_is_still_available(aflw, detector):
             assert r.method == "landmarks" and r.confidence == 1.0
             geo.append(geodesic_deg(label_matrix(*pose[:3]), matrix(r.crop_quaternion)))
     assert len(geo) >= 12 and np.mean(geo) > 10.0
+
+
+# ------------------------------------------------------------- argument ranges, noise, edges
+def test_assumed_sizes_are_range_checked(detector):
+    """head_size=inf (or 1e300) gave status OK with an infinite position and a NaN quaternion;
+    sizes outside the CLI's ranges (head 0.05-0.5 m, ipd 0.03-0.1 m) are refused when built."""
+    from phjax.vision.monocular import HEAD_SIZE_RANGE, IPD_RANGE
+
+    assert HEAD_SIZE_RANGE == (0.05, 0.5) and IPD_RANGE == (0.03, 0.1)
+    intr = intrinsics_from_fov(450, 450)
+    for bad in (float("inf"), 1e300, float("nan"), 0.0, -0.2, 0.049, 0.51, 200.0, "0.2", None):
+        with pytest.raises(ValueError, match="head_size must be between 0.05 and 0.5 m"):
+            MonocularHeadPose(intr, head_size=bad, detector=detector)
+    for bad in (float("inf"), float("nan"), 0.0, 0.029, 0.11, 63.0):
+        with pytest.raises(ValueError, match="ipd must be between 0.03 and 0.1 m"):
+            MonocularHeadPose(intr, ipd=bad, method="landmarks", detector=detector)
+    for kw in ({"max_rotation_std": float("nan")}, {"max_rotation_std": 0.0},
+               {"max_reprojection": float("inf")}, {"max_reprojection": -1.0}):
+        with pytest.raises(ValueError, match=next(iter(kw))):
+            MonocularHeadPose(intr, method="landmarks", detector=detector, **kw)
+    # the ends of the ranges are accepted
+    for size in HEAD_SIZE_RANGE:
+        for ipd in IPD_RANGE:
+            MonocularHeadPose(intr, ipd=ipd, head_size=size, method="landmarks",
+                              detector=detector)
+
+
+def test_landmark_method_with_kornia_finds_no_face_in_noise(tmp_path, monkeypatch):
+    """The kornia detector's false faces in square noise frames became OK poses with
+    confidence 1 (8 of 10 frames); they are dropped by the detector's plausibility check."""
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    cache = tmp_path / "models"
+    F.seed_model_cache(yunet_models(), cache)
+    est = MonocularHeadPose(intrinsics_from_fov(450, 450), method="landmarks",
+                            detector=F.FaceDetector("kornia", model_dir=cache))
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        est.reset()
+        r = est.process(rng.integers(0, 256, (450, 450, 3), dtype=np.uint8))
+        assert r.status == HeadPoseStatus.NO_FACE and r.confidence == 0.0
+
+
+def test_landmark_confidence_falls_for_a_face_cut_off_by_the_image_edge(aflw, detector):
+    """A face shifted down until its mouth and chin leave the frame read up to 2.2 times as far
+    away with confidence 1. Its confidence is now the fraction of the face inside the image:
+    measured 1 unshifted, 0.60-0.87 at 200 px down (13 poses; the others NO_FACE /
+    ALIGNMENT_FAILED); bounds 0.9 and a mean below 0.8 (measured 0.74)."""
+    est = MonocularHeadPose(intrinsics_from_fov(450, 450, 45.0), method="landmarks",
+                            detector=detector)
+    shifted, far = [], []
+    for _, img, _ in aflw:
+        est.reset()
+        r0 = est.process(img)
+        est.reset()
+        r = est.process(cv2.warpAffine(img, np.float32([[1, 0, 0], [0, 1, 200]]), (450, 450)))
+        if r0.ok:
+            assert r0.confidence == 1.0
+        if r.ok:
+            assert 0.0 < r.confidence <= 0.9
+            shifted.append(r.confidence)
+            if r0.ok and r.position[2] > 1.3 * r0.position[2]:
+                far.append(r.confidence)
+    print(f"confidence of faces cut off at the bottom: {np.round(shifted, 2)}")
+    assert len(shifted) >= 10 and np.mean(shifted) < 0.8
+    assert far  # the distance error this guards against happens here
