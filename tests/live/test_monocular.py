@@ -232,6 +232,13 @@ def test_video_and_webcam_errors(tmp_path, video):
     src.open()
     assert src.estimator.method == "landmarks"
     src.close()
+    # a corrupt network (wrong checksum): a SourceError naming it, the capture released (was
+    # a ValueError with the video left open)
+    (empty / "head-pose-0.4-small-int8.onnx").write_bytes(b"x" * 100)
+    src = VideoSource(str(video[0]), model_dir=empty)
+    with pytest.raises(SourceError, match="head-pose-0.4-small-int8.onnx: sha256"):
+        src.open()
+    assert src.cap is None or not src.cap.isOpened()
 
 
 # ----------------------------------------------------- video files: pacing, end, checks
