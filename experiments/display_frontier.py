@@ -57,6 +57,7 @@ import math
 import pickle
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import jax
@@ -68,7 +69,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import frontier as F  # noqa: E402
 from devset import load_devset  # noqa: E402
 
-from phjax.motion.resample import interpolate_poses, snap_to_frames  # noqa: E402
+from phjax.io import TrajectoryWarning  # noqa: E402
+from phjax.motion.resample import (  # noqa: E402
+    interpolate_poses,
+    snap_to_frames,
+    warn_sparse_ground_truth,
+)
 from phjax.tracking import baselines  # noqa: E402
 from phjax.tracking.imm import IMMConfig  # noqa: E402
 from phjax.tracking.kalman import KalmanConfig  # noqa: E402
@@ -95,10 +101,14 @@ def load_recordings(seconds: float, data: Path | None = None,
     if files:
         from phjax.io import read_trajectory_spec, split_trajectory_name
 
-        out = []
+        out, seen = [], {}
         for f in files:
             tr = read_trajectory_spec(f)  # FILE or FILE#NAME, as on phjax's command line
             path, name = split_trajectory_name(f)
+            key = (Path(path).resolve(), name)
+            if key in seen:  # the same data on both sides of the split would score tuning
+                raise ValueError(f"{f}: given twice (also as {seen[key]})")
+            seen[key] = f
             sel = tr.times < tr.times[0] + seconds
             out.append((Path(path).stem + (f"#{name}" if name else ""), "file",
                         tr.times[sel], tr.positions[sel], tr.quaternions[sel]))
@@ -122,7 +132,8 @@ def simulate(seqs, seconds: float, quick: bool = False) -> list[dict]:
         mt, mp, mq = (np.asarray(x, np.float64)
                       for x in simulate_measurements(0, t, p, q, SensorModel(rate=RATE)))
         if mt.shape[0] < n:
-            print(f"skip {name}: {mt.shape[0]} frames < {n}")
+            print(f"skip {name}: {mt.shape[0]} camera frames in its {t[-1]:.3g} s (needs {n}: "
+                  f"{seconds:g} s at {RATE:g} Hz; times in seconds?)")
             continue
         out.append(dict(name=name, kind=kind, t=t, p=np.asarray(p, np.float64),
                         q=np.asarray(q, np.float64), mt=mt[:n], mp=mp[:n], mq=mq[:n],
@@ -147,6 +158,12 @@ def prepare(recs: list[dict], seconds: float, lookaheads: list[float],
                 t, p, q, (r[None, :] + L - LAGS[:, None]).ravel(), max_gap=0.1))
             truth[L] = dict(gp=gp, gq=gq, sp=sp.reshape(len(LAGS), m, 3),
                             sq=sq.reshape(len(LAGS), m, 4))
+        with warnings.catch_warnings(record=True) as caught:  # said per recording, once
+            warnings.simplefilter("always", TrajectoryWarning)
+            first = truth[lookaheads[0]]
+            warn_sparse_ground_truth(t, r, first["gp"], first["gq"])
+        for w in caught:
+            print(f"warning: {rec['name']}: {w.message}", flush=True)
         out.append(dict(name=rec["name"], kind=rec["kind"], mt=mt, mp=rec["mp"], mq=rec["mq"],
                         r=r, has_pos=rec["has_pos"], truth=truth))
     out.sort(key=lambda d: d["name"])
@@ -223,11 +240,7 @@ def measure(data, L: float, train: list[int], log=print, small: bool = False) ->
     for h in horizons:
         cfg = TrackerConfig(kalman=base.kalman, imm=base.imm, lookahead=L, horizon=h)
         runs[(STREAM, h)] = run(data, lambda t, p, q, r, c=cfg: track(t, p, q, r, config=c), L)
-    ok = [h for h in horizons
-          if F.rel_mean(runs[(STREAM, h)], kf_p, "jp", train) <= 1 / 3
-          and F.rel_mean(runs[(STREAM, h)], kf_r, "jr", train) <= 1 / 3] or [max(horizons)]
-    h = min(ok, key=lambda h: F.rel_mean(runs[(STREAM, h)], hold, "pos", train)
-            + F.rel_mean(runs[(STREAM, h)], hold, "rot", train))
+    h = F.horizon_rule(lambda h: runs[(STREAM, h)], horizons, kf_p, kf_r, hold, train, log)
     tuned[STREAM] = (h, h)
     d = TrackerConfig(lookahead=L)
     runs[(DEFAULT, d.horizon)] = run(data, lambda t, p, q, r: track(t, p, q, r, config=d), L)
@@ -351,8 +364,11 @@ def report(data, results: dict, names, train, splits, seconds, wall,
              "one-euro + extrapolation": "One Euro + extrap."}
     summary = {}
 
-    def rc(v):
-        return f"{v[0]:.3f} ({short.get(v[1], v[1])})"
+    def rc(v):  # "-": no recording of the split measures the channel
+        return f"{v[0]:.3f} ({short.get(v[1], v[1])})" if np.isfinite(v[0]) else "-"
+
+    def num(x, spec):
+        return format(x, spec) if np.isfinite(x) else "-"
 
     for stream in (STREAM, DEFAULT):
         if stream == DEFAULT:
@@ -367,8 +383,9 @@ def report(data, results: dict, names, train, splits, seconds, wall,
                 summary[(stream, L, split)] = tr
                 lines.append(f"| {1e3 * L:g} ms | {split} | {rc(tr['phjax_pos'])} | "
                              f"{rc(tr['phjax_rot'])} | {rc(tr['imm_pos'])} | "
-                             f"{rc(tr['imm_rot'])} | {tr['jp']:.3f} | {tr['jr']:.3f} | "
-                             f"{tr['lag_p']:+.1f} | {tr['lag_r']:+.1f} | "
+                             f"{rc(tr['imm_rot'])} | {num(tr['jp'], '.3f')} | "
+                             f"{num(tr['jr'], '.3f')} | {num(tr['lag_p'], '+.1f')} | "
+                             f"{num(tr['lag_r'], '+.1f')} | "
                              f"{res['tuned'][stream][0]:g} s |")
     lines += ["", "### The stream's frontier where its jerk is 1/3 of the Kalman CV's", "",
               "The rule above keeps the *train* jerk within 1/3; on another split the jerk "
@@ -415,8 +432,11 @@ def report(data, results: dict, names, train, splits, seconds, wall,
             cells = []
             for key in ("pos", "rot"):
                 k, a, c = eq[(b, key)]
-                cells += (["not reached", f"min jerk {a:.2f} (phjax {c:.2f})", ""] if k is None
-                          else [str(k), f"{a:.3f}", f"{c:+.1f}"])
+                if k is None and not np.isfinite(c):  # no recording measures the channel
+                    cells += ["-", "no data", ""]
+                else:
+                    cells += (["not reached", f"min jerk {a:.2f} (phjax {c:.2f})", ""]
+                              if k is None else [str(k), f"{a:.3f}", f"{c:+.1f}"])
             lines.append(f"| {b} | " + " | ".join(cells) + " |")
         lines.append("")
     lines += [f"Wall time {wall:.0f} s.", ""]
@@ -523,15 +543,21 @@ def main(argv=None):
     if not 0 <= args.render_phase < 1:
         ap.error("--render-phase must lie in [0, 1) render periods")
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     if args.report_only:
+        if not (out / "results.pkl").is_file():
+            ap.error(f"--report-only: no saved scores in {out} (results.pkl); run without it "
+                     "first, with the same --out")
         with open(out / "results.pkl", "rb") as fh:
             saved = pickle.load(fh)
+        print(f"--report-only: the saved run's lookaheads, --seconds and --render-phase "
+              f"({out / 'results.pkl'}); other options are not used", flush=True)
         data, results, wall = saved["data"], saved["results"], saved["wall"]
         args.seconds, args.render_phase = saved["seconds"], saved.get("render_phase", 0.0)
     else:
         lookaheads = [L / 1e3 for L in args.lookaheads]
+        if args.data is not None and not args.data.is_dir():
+            ap.error(f"--data {args.data}: no such folder (a folder laid out like ../shared/data)")
         try:
             seqs = load_recordings(args.seconds, args.data, args.recordings)
         except (OSError, ValueError) as e:  # a missing or unreadable recording: one line
@@ -541,7 +567,9 @@ def main(argv=None):
             raise SystemExit(2) from None
         recs = simulate(seqs, args.seconds, args.quick and not args.recordings)
         if len(recs) < 2:
-            ap.error(f"need at least 2 recordings of {args.seconds:g} s (got {len(recs)})")
+            where = (f" ({len(seqs)} read" + (f" from --data {args.data}: its development-set "
+                     "folders, see experiments/devset.py" if not args.recordings else "") + ")")
+            ap.error(f"need at least 2 recordings of {args.seconds:g} s (got {len(recs)}{where})")
         data = prepare(recs, args.seconds, lookaheads, args.render_phase)
     names = [d["name"] for d in data]
     train = [i for i in range(len(data)) if i % 2 == 0]
@@ -558,8 +586,12 @@ def main(argv=None):
                       "alternately by sorted name); add recordings with them or rename",
                       file=sys.stderr)
                 return 2
+            if any(has) and not any(has[i] for i in splits["test"]):
+                print(f"note: no test recording has {part}: the test split's {part} columns "
+                      "are '-'", flush=True)
         results = {L: measure(data, L, train, small=args.smoke) for L in lookaheads}
         wall = time.time() - t0
+        out.mkdir(parents=True, exist_ok=True)
         with open(out / "results.pkl", "wb") as fh:  # the scores, for --report-only
             pickle.dump({"data": [{k: d[k] for k in ("name", "kind")} for d in data],
                          "results": results, "wall": wall, "seconds": args.seconds,

@@ -559,3 +559,25 @@ def test_every_script_parses_its_arguments():
             calls = {ast.unparse(n.func) for n in ast.walk(tree) if isinstance(n, ast.Call)}
             assert calls & {"argparse.ArgumentParser", "ArgumentParser"}, path
     assert len(runnable) >= 20, runnable
+
+
+def test_horizon_rule_ignores_a_channel_no_recording_measures():
+    """Orientation-only recordings (the VR head traces) have NaN position scores: every
+    horizon failed the position half of the jerk rule and the longest (125 ms) was taken
+    silently, worse than the raw hold. A channel without data neither constrains nor scores."""
+    import frontier
+
+    nan = float("nan")
+    kf = [dict(jp=nan, jr=1.0)]
+    hold = [dict(pos=nan, rot=1.0)]
+    rows = {h: [dict(jp=nan, jr=j, pos=nan, rot=e)] for h, j, e in
+            ((0.02, 0.5, 0.8), (0.028, 0.3, 0.85), (0.035, 0.25, 0.9), (0.125, 0.05, 1.2))}
+    said = []
+    pick = frontier.horizon_rule(rows.get, sorted(rows), kf, kf, hold, [0], said.append)
+    assert pick == 0.028 and not said
+    both = {h: [dict(r[0], jp=r[0]["jr"], pos=r[0]["rot"])] for h, r in rows.items()}
+    kf2, hold2 = [dict(jp=1.0, jr=1.0)], [dict(pos=1.0, rot=1.0)]
+    assert frontier.horizon_rule(both.get, sorted(rows), kf2, kf2, hold2, [0], said.append) == 0.028
+    none = {h: [dict(r[0], jr=1.0)] for h, r in rows.items()}  # no horizon meets the rule
+    assert frontier.horizon_rule(none.get, sorted(rows), kf, kf, hold, [0], said.append) == 0.125
+    assert len(said) == 1 and "taking the longest" in said[0]

@@ -624,7 +624,8 @@ def shift_lag(
 
     Returns:
         ``Lag(lag, rmse_at_lag, count)``; positive lag = estimate behind. NaN with count 0 when
-        fewer than 3 samples can be scored.
+        fewer than 3 samples can be scored; a NaN lag when every shift scores the same (the
+        ground truth does not move over the scored samples: a still head has no lag).
     """
     t, e, g, kind = _lag_inputs(times, est, gt, kind)
     if not (step > 0 and min_lag < max_lag):
@@ -653,6 +654,8 @@ def shift_lag(
         return nan
     rmse = np.sqrt(np.mean(err2[:, ok], axis=-1))
     k = int(np.argmin(rmse))
+    if np.ptp(rmse) <= 1e-9 * rmse.max():  # the truth does not move: every shift scores alike
+        return Lag(float("nan"), float(rmse[k]), count)
     lag = float(lags[k])
     if 0 < k < len(lags) - 1:
         lag += _parabola_vertex(rmse[k - 1 : k + 2], maximum=False) * step

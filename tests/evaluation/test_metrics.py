@@ -370,6 +370,21 @@ def test_shift_lag_recovers_a_known_delay(delay):
         assert res.rmse < 0.2 * unshifted  # what is left: <= 1 ms of grid offset, slerp error
 
 
+def test_shift_lag_of_a_still_truth_is_nan():
+    """A still head scores alike at every shift: the lag was the grid's lower end (-100 ms),
+    shown in bold as the best lag of every method. Now NaN (the rmse and count still given)."""
+    t = np.arange(0, 5, 1 / 120)
+    rng = np.random.default_rng(0)
+    gt = np.tile([0.1, 0.2, 0.6], (t.size, 1))
+    res = metrics.shift_lag(t, gt + rng.normal(0, 1e-3, gt.shape), gt)
+    assert np.isnan(res.value) and res.count > 500 and res.rmse == pytest.approx(1.7e-3, rel=0.1)
+    q = np.tile([0.9, 0.1, 0.3, 0.3], (t.size, 1)) / np.linalg.norm([0.9, 0.1, 0.3, 0.3])
+    assert np.isnan(metrics.shift_lag(t, q, q).value)
+    moving = gt.copy()
+    moving[:, 0] += 0.01 * np.sin(t)  # any motion: a lag again
+    assert abs(metrics.shift_lag(t, moving, moving).value) < 1e-3
+
+
 def test_shift_lag_of_a_hold_and_against_brute_force():
     """A zero-order hold lags by the mean age of the held sample (here 30 Hz held on a 120 Hz
     grid: ages 0, 1, 2, 3 render periods, mean 1.5 h; the RMSE of a sawtooth error is least at
