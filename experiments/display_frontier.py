@@ -132,8 +132,8 @@ def simulate(seqs, seconds: float, quick: bool = False) -> list[dict]:
         mt, mp, mq = (np.asarray(x, np.float64)
                       for x in simulate_measurements(0, t, p, q, SensorModel(rate=RATE)))
         if mt.shape[0] < n:
-            print(f"skip {name}: {mt.shape[0]} camera frames in its {t[-1]:.3g} s (needs {n}: "
-                  f"{seconds:g} s at {RATE:g} Hz; times in seconds?)")
+            print(f"skip {name}: {t[-1]:.3g} s, {mt.shape[0]} camera frames (needs {n}: "
+                  f"{seconds:g} s at {RATE:g} Hz)")
             continue
         out.append(dict(name=name, kind=kind, t=t, p=np.asarray(p, np.float64),
                         q=np.asarray(q, np.float64), mt=mt[:n], mp=mp[:n], mq=mq[:n],
