@@ -110,12 +110,22 @@ def unit_interval(text: str) -> float:
     return x
 
 
-def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1."""
-    n = _number(text, int)
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
-    return n
+def int_at_least(low: int):
+    """argparse type factory: an integer ``>= low``."""
+    def check(text: str) -> int:
+        n = _number(text, int)
+        if n < low:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {text!r}")
+        return n
+
+    check.__name__ = f"integer >= {low}"
+    return check
+
+
+#: argparse type: an integer >= 1 (counts, strides)
+positive_int = int_at_least(1)
+#: argparse type: an integer >= 0 (counts where 0 means off)
+nonnegative_int = int_at_least(0)
 
 
 def file_name(text: str) -> str:
@@ -124,13 +134,6 @@ def file_name(text: str) -> str:
         raise argparse.ArgumentTypeError("needs a file name")
     return text
 
-
-def nonnegative_int(text: str) -> int:
-    """argparse type: an integer >= 0 (counts where 0 means off)."""
-    n = _number(text, int)
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
-    return n
 
 
 #: the largest random seed (the one range of every seed: ``synthetic:N:SEED`` sources too)
