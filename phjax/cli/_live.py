@@ -8,6 +8,7 @@ import signal
 import sys
 import threading
 
+from .._face_sizes import HEAD_SIZE_RANGE, IPD_RANGE
 from ._common import (
     add_format_argument,
     check_lookahead,
@@ -16,12 +17,9 @@ from ._common import (
     positive_float,
 )
 
-#: accepted ``--head-size`` (assumed vertical head size, m), ``--ipd`` (assumed
-#: inter-pupillary distance, m) and ``--fov`` (horizontal field of view, degrees): values
-#: outside them are typing errors (a millimetre value, a missing decimal point), and the
+#: accepted ``--fov`` (horizontal field of view, degrees; ``--head-size`` and ``--ipd``: the
+#: library's ranges): values outside are typing errors (a missing decimal point), and the
 #: monocular front-end turned them into NaN or zero poses
-HEAD_SIZE_RANGE = (0.05, 0.5)
-IPD_RANGE = (0.03, 0.1)
 FOV_RANGE = (10.0, 170.0)
 
 

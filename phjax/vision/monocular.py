@@ -116,6 +116,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from .._face_sizes import HEAD_SIZE_RANGE, IPD_RANGE  # also phjax live's ranges
 from .._np_quat import np_qconj, np_qmul, np_qnormalize
 from .face_detection import FaceDetection, FaceDetector
 from .head_pose import HeadPoseStatus
@@ -142,12 +143,6 @@ __all__ = [
 DEFAULT_IPD = 0.063
 #: default assumed vertical head size, m (opentrack's ``HEAD_SIZE_MM``)
 DEFAULT_HEAD_SIZE = 0.20
-#: accepted assumed vertical head size, m (the same range as ``phjax live --head-size``):
-#: values outside are typing errors (millimetres, a missing decimal point) and gave inf / NaN
-#: poses reported as OK
-HEAD_SIZE_RANGE = (0.05, 0.5)
-#: accepted assumed inter-pupillary distance, m (the same range as ``phjax live --ipd``)
-IPD_RANGE = (0.03, 0.1)
 #: measurement noise of monocular poses for the tracker: position std (m), rotation std (rad),
 #: for a frame of confidence 1
 MONOCULAR_NOISE = (0.015, math.radians(3.0))
