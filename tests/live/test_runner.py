@@ -711,18 +711,20 @@ def _rss_mb() -> float:
 @pytest.mark.optimised
 @pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="needs /proc (Linux)")
 @pytest.mark.slow
-def test_soak_one_hour_of_camera_frames(tmp_path):
-    """108 000 camera frames at 30 Hz (one hour) replayed on the virtual clock with a 30 Hz
-    render loop, opentrack output and log: bounded memory, no drift, no leak."""
+def test_soak_half_an_hour_of_camera_frames(tmp_path):
+    """54 000 camera frames at 30 Hz (half an hour) replayed on the virtual clock with a 30 Hz
+    render loop, opentrack output and log: bounded memory, no drift, no leak. (An hour, as
+    before, cost 80 s of the suite's CPU time; the RSS bound below is halved with the span, so
+    the smallest leak per frame it catches is the same.)"""
     counter = UdpListener(keep=False)  # counts only: its own memory stays constant
-    n, rate = 108_000, 30.0
+    n, rate = 54_000, 30.0
     t, p, q = smooth_motion(n, 30.0, seed=5)
     threads0, fds0 = threading.active_count(), _fds()
     src = PoseReplaySource(t, p, q)
-    rss = []  # at 10 and 50 virtual minutes
+    rss = []  # at 5 and 25 virtual minutes
 
     def cb(s):
-        if s.t in (600.0, 3000.0):
+        if s.t in (300.0, 1500.0):
             rss.append(_rss_mb())
 
     wall = time.perf_counter()
@@ -739,7 +741,8 @@ def test_soak_one_hour_of_camera_frames(tmp_path):
     assert lt.sent + lt.waiting == lt.k
     assert abs(last - (lt.k - 1) / rate) < 1e-6 and lt.missed_deadlines == 0
     assert abs(last - t[-1]) <= 1 / rate
-    assert len(rss) == 2 and rss[1] - rss[0] < 20.0
+    # measured: +0.004 MB over the 20 virtual minutes; 2 MB catches a leak of 60 bytes a frame
+    assert len(rss) == 2 and rss[1] - rss[0] < 2.0
     assert threading.active_count() == threads0 and _fds() == fds0
     assert os.path.getsize(tmp_path / "soak.tum") > 0
     counter.close()

@@ -502,12 +502,13 @@ def test_config_validation():
 @pytest.mark.optimised
 def test_slambook_relative_camera_poses():
     """Default rgbd_relative_pose (RANSAC + joint dense / reprojection refinement): all four
-    consecutive pairs within 3 deg and 5 cm of the given poses, the same pose for every RANSAC
-    seed 0-7 (before refinement seeds 0/1/4/5/6 are 8.6-18 cm off on 1 -> 2, seed 6 20 cm on
-    3 -> 4). RANSAC alone (refine=None, seed 0) on 2-3, 3-4, 4-5 as well."""
+    consecutive pairs within 3 deg and 5 cm of the given poses, the same pose for the RANSAC
+    seeds 0, 1, 4, 6 (before refinement seeds 0/1/4/5/6 are 8.6-18 cm off on 1 -> 2, seed 6
+    20 cm on 3 -> 4; all of 0-7 agreed when measured, these four are the ones RANSAC alone gets
+    most wrong). RANSAC alone (refine=None, seed 0) on 2-3, 3-4, 4-5 as well."""
     seq = R.open_rgbd(shared_path("rgbd_frames_slambook2_ch5"))
     for i in range(4):
-        rels = [H.rgbd_relative_pose(seq[i], seq[i + 1], seed=s) for s in range(8)]
+        rels = [H.rgbd_relative_pose(seq[i], seq[i + 1], seed=s) for s in (0, 1, 4, 6)]
         for rel in rels:
             assert rel.status == 0 and rel.refined and rel.icp_status in (0, 3), (i, rel)
             rot, trans = _slambook_pair_errors(seq, i, rel)
