@@ -15,6 +15,7 @@ from ._common import (
     file_name,
     float_between,
     positive_float,
+    replaced_note,
 )
 
 #: accepted ``--fov`` (horizontal field of view, degrees; ``--head-size`` and ``--ipd``: the
@@ -123,6 +124,7 @@ def cmd_live(args) -> int:
             source.open()  # a port in use fails now, not after the tracker's compilation
         config = eqx.tree_at(lambda c: c.lookahead, live_tracker_config(source.depth_free),
                              ms / 1e3)
+        replaced = replaced_note(args.log) if args.log else ""  # before the log is opened
         lt = LiveTracker(source, args.output or [], rate=args.rate, duration=args.duration,
                          log=args.log, center=args.center, realtime=args.realtime,
                          config=config)
@@ -146,7 +148,7 @@ def cmd_live(args) -> int:
     with say_lock:  # the start line first, then the reports that came while starting
         print(f"phjax live: {lt.source.name} -> {outs} at {args.rate:g} Hz"
               + (f", lookahead {ms:g} ms" if ms else "")
-              + (f", log {args.log}" if args.log else ""), file=sys.stderr, flush=True)
+              + (f", log {args.log}{replaced}" if args.log else ""), file=sys.stderr, flush=True)
         for line in held:
             print(line, file=sys.stderr, flush=True)
         held.clear()
@@ -199,8 +201,9 @@ def cmd_live(args) -> int:
 def add_commands(sub) -> None:
     p = sub.add_parser(
         "live", help="live head tracking: camera in, smooth poses out to opentrack / OSC",
-        description="Track a head live and send smooth render-rate poses. A capture thread "
-        "runs SOURCE's frames through the head-pose front-end and feeds the streaming tracker; "
+        description="Track a head live and send smooth render-rate poses. A worker process "
+        "runs SOURCE's frames through the head-pose front-end (pose files and UDP input need "
+        "none) and a capture thread feeds the streaming tracker; "
         "a render loop samples it at --rate on absolute deadlines and sends each pose to every "
         "--output (and to --log). SOURCE: synthetic[:N[:SEED]] (the rendered test head), an "
         "RGB-D folder (Biwi, TUM RGB-D, color/+depth/), webcam[:INDEX] or a video file "
@@ -223,7 +226,9 @@ def add_commands(sub) -> None:
     p.add_argument("--duration", type=positive_float, default=None,
                    help="stop after this many seconds (a positive finite number; default: end "
                    "of the source / Ctrl-C)")
-    p.add_argument("--log", type=file_name, default=None, metavar="FILE.tum", help="write every sent pose to this TUM file")
+    p.add_argument("--log", type=file_name, default=None, metavar="FILE.tum",
+                   help="write every sent pose to this TUM file (an existing one is replaced, "
+                   "and the start line says so)")
     p.add_argument("--lookahead", type=float, default=0.0, metavar="MS",
                    help="display-time prediction, ms (default 0, at most 200): send the pose "
                    "predicted for MS after the render time. Set it to the display's "

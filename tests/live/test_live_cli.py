@@ -299,3 +299,19 @@ def test_send_failures_are_reported_and_the_status_interval_is_checked(tmp_path,
     for bad in ("0", "-1", "nan"):
         assert main(["live", f"poses:{src}", "--status-interval", bad]) == 2
         assert "argument --status-interval" in capsys.readouterr().err
+
+
+def test_a_replaced_log_is_named_as_replaced(tmp_path, capsys):
+    """Like the other commands' outputs, an existing --log file is said to be replaced (it was
+    emptied without a word); a new one is not."""
+    src = tmp_path / "p.txt"
+    write_tum(src, Trajectory(np.arange(30) / 30, np.zeros((30, 3)),
+                              np.tile([1.0, 0, 0, 0], (30, 1))))
+    log = tmp_path / "sent.tum"
+    argv = ["live", f"poses:{src}", "--duration", "0.2", "--quiet", "--log", str(log)]
+    assert main(argv) == 0
+    first = capsys.readouterr().err
+    assert f", log {log}" in first and "(replaced the existing file)" not in first
+    assert main(argv) == 0
+    assert f", log {log} (replaced the existing file)" in capsys.readouterr().err
+    assert read_tum(log).num_samples > 0
