@@ -349,10 +349,12 @@ def ph_spline(
         points: ``(N + 1, 3)`` points, ``N >= 2``, finite.
         d_start, d_end: optional clamped end derivatives with respect to the segment parameter
             (velocity x segment duration). Omitted ends are free (the fairness measure decides).
-        max_steps: step limit of the feasibility solve / 2 x that of each augmented-Lagrangian
-            subproblem (Levenberg-Marquardt steps).
+        max_steps: step scale of the Levenberg-Marquardt solves: the feasibility solve runs
+            up to ``4 * max_steps`` steps, each augmented-Lagrangian subproblem and the final
+            projection up to ``2 * max_steps``.
         rtol, atol: Levenberg-Marquardt tolerances (default ``1e-10, 1e-12`` in float64,
-            ``1e-5, 1e-6`` in float32), on the scaled problem.
+            ``1e-5, 1e-6`` in float32), on the scaled problem (the solver's absolute tolerance
+            is ``atol / 100``).
 
     Returns:
         ``(curves, solution)``: a batch of ``N`` :class:`PHQuintic` (segment ``k`` from

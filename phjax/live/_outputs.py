@@ -240,10 +240,12 @@ class OscOutput(_UdpOutput):
 class TumLog(Output):
     """A TUM file of every sent pose (``t x y z qx qy qz qw``, shortest round-trip floats).
 
-    Lines are buffered and flushed about once a second and on :meth:`close`.
+    Lines are buffered and flushed every ``flush_interval`` seconds of sample time (once a
+    second by default) and on :meth:`close`.
 
     Arguments:
         path: the file (created or truncated).
+        flush_interval: seconds of sample time ``t`` between flushes.
     """
 
     def __init__(self, path, flush_interval: float = 1.0):

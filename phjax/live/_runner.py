@@ -36,8 +36,9 @@ Adaptive settling. When measurements arrive less often than the tracker's ``hori
 front-end), a correction applied within ``horizon`` would be a visible step. With
 ``adaptive=True`` the runner sets ``horizon`` to the measured interval between good
 measurements (its running mean, or the last interval if longer, as after a lost face; at least
-the configured value, at most 0.5 s) and ``coast_time`` to 1.5 times the horizon (a longer
-horizon was tried: 1.5 intervals made the prediction overshoot more and the steps no
+the configured value, at most 0.5 s) and ``coast_time`` to 1.5 times the horizon, never below
+the configured value; the config is replaced only when the horizon moves by more than 15 % (a
+longer horizon was tried: 1.5 intervals made the prediction overshoot more and the steps no
 smaller), so the stream settles on each prediction just before the next measurement and
 does not stop between measurements (changing these values does not recompile).
 
@@ -107,7 +108,9 @@ class LiveStream(TrackerStream):
     """:class:`phjax.tracking.TrackerStream` with late measurements and a settable config.
 
     Arguments: as :class:`phjax.tracking.TrackerStream` (``fast_start`` applies to
-    :meth:`update_late`, the update a live run uses).
+    :meth:`update_late`, the update a live run uses), except two defaults: ``t`` is 0.0 (times
+    are relative to the run's start, the origin is not the first update's time) and ``dtype``
+    is float64 when ``jax_enable_x64`` is on, else float32.
     """
 
     def __init__(self, config: TrackerConfig | None = None, t: float = 0.0, dtype=None,
@@ -236,9 +239,9 @@ class LiveTracker:
         source: a :class:`phjax.live.Source` or a ``phjax live`` SOURCE string.
         outputs: :class:`phjax.live.Output` objects or URLs (``opentrack://HOST:PORT``,
             ``osc://HOST:PORT``).
-        rate: render rate, Hz, in ``(0, MAX_RATE]`` (:data:`MAX_RATE`: 1000).
-        duration: stop after this many seconds (default: when the source ends, after the
-            stream has come to rest, or on :meth:`stop`).
+        rate: render rate, Hz, in ``(0, MAX_RATE]`` (:data:`MAX_RATE`: 1000; default 120).
+        duration: stop after this many seconds (default: ``linger`` seconds after the source
+            ends, or on :meth:`stop`).
         log: path of a TUM log of every sent pose.
         center: make the first sent pose the origin (see :meth:`center`).
         config: tracker config (default :func:`live_tracker_config` of the source).
@@ -267,7 +270,8 @@ class LiveTracker:
             best effort: needs ``CAP_SYS_NICE`` or an ``rtprio`` limit; ``realtime_active``
             says whether it took effect). On a busy CPU this keeps the render deadlines when
             ordinary priorities do not; the thread sleeps between samples (a few % of a core).
-        linger: without ``duration``, keep rendering this long after the source ends, s.
+        linger: without ``duration``, keep rendering this long after the source ends, s
+            (default 0.5).
 
     Use as a context manager (``start`` / ``stop``) and iterate :meth:`samples`, read
     :attr:`latest`, or pass a ``callback``::
@@ -653,6 +657,7 @@ class LiveTracker:
 
         Arguments:
             status: called with :meth:`status_line` every ``status_interval`` seconds.
+            status_interval: seconds between status lines (wall clock; default 1.0).
 
         Raises:
             the capture or render thread's exception, if one ended the run.

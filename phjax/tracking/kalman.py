@@ -197,9 +197,11 @@ class KalmanState(eqx.Module):
 class KalmanInfo(eqx.Module):
     """Diagnostics of one :func:`kalman_update`.
 
-    Innovations, their covariances and NIS are those of the prior state; they are zero when the
-    part is missing or when the call initialised the filter (``initialized_now``), and are
-    reported (not zero) for measurements rejected by the gate.
+    Innovations, their covariances and NIS are those of the prior state. Innovations and NIS
+    are zero when the part is missing or when the call initialised the filter
+    (``initialized_now``); the innovation covariance is then the prior's ``S`` (missing part)
+    or the measurement noise ``R`` (initialisation). All are reported (not zero) for
+    measurements rejected by the gate.
 
     Fields:
         pos_innovation, rot_innovation: (3,) innovations (m; rotation vector, rad).

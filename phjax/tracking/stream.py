@@ -97,9 +97,12 @@ class TrackerStream:
     Arguments:
         config: tracker configuration (default :class:`phjax.TrackerConfig()`).
         t: start time, s: the origin of the state's times (default: the first update's time).
-            Times are given to :meth:`update` and :meth:`sample` as they come (absolute epoch
-            times too) and subtracted from the origin in float64 before the float32 state sees
-            them, which would round a time of 1.7e9 s to 128 s. The state's times still grow
+            Host times (Python floats, NumPy values) are given to :meth:`update` and
+            :meth:`sample` as they come (absolute epoch times too) and subtracted from the
+            origin in float64 before the float32 state sees them, which would round a time of
+            1.7e9 s to 128 s. A ``jax.Array`` time is taken as relative to the origin already
+            (0 unless ``t`` was given) and passed on unchanged; such an update also skips the
+            one-part completion below (its position and quaternion go to the filter as given). The state's times still grow
             with uptime: in float32, constant motion at 0.2 m/s and 60 deg/s is rendered within
             0.3 mm / 0.1 deg after 4 h and 2.5 mm / 0.75 deg after 24 h (measured); for longer
             sessions start a new stream (or use float64).
@@ -239,7 +242,8 @@ class TrackerStream:
         """Feed one camera-rate measurement (as :func:`phjax.tracker_update`).
 
         Arguments:
-            t: measurement time, s.
+            t: measurement time, s (a ``jax.Array``: relative to :attr:`origin`, see the
+                class docs).
             position: measured position, m (NaN if missing).
             quaternion: measured orientation wxyz (NaN if missing; sign irrelevant).
         """
@@ -264,7 +268,8 @@ class TrackerStream:
         return _wait_optimised(self._update, timeout)
 
     def sample(self, t_render: Float[ArrayLike, "*T"]) -> tuple[Float[Array, "*T 3"], Float[Array, "*T 4"]]:
-        """Rendered pose at render time(s) ``t_render`` (as :func:`phjax.tracker_sample`).
+        """Rendered pose at render time(s) ``t_render`` (as :func:`phjax.tracker_sample`; a
+        ``jax.Array`` is relative to :attr:`origin`, a host value absolute like the updates').
 
         Returns:
             ``(position (*T, 3), quaternion (*T, 4))``; NaN before the first valid measurement.

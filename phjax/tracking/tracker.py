@@ -37,7 +37,9 @@ also take NaN-padded batches of recordings, sharded over devices or not
 (:mod:`phjax.tracking._batch`, padding rule in :mod:`phjax.batch`).
 
 Conventions: times in seconds, positions in metres, quaternions wxyz, angular velocities in
-rad/s in the world frame. Render times before the first valid measurement give NaN.
+rad/s in the world frame. Render times before the first valid measurement give NaN in the
+causal stream (:func:`track`, :func:`tracker_sample`); :func:`reconstruct` holds the first
+valid pose there.
 """
 
 from __future__ import annotations
@@ -532,7 +534,8 @@ def tracker_update(
 
     Returns:
         The new state. The next render segment starts at the pose and velocity rendered at
-        ``t`` (C1 continuity) and ends at the filter's prediction for ``t + horizon``,
+        ``t`` (C1 continuity) and ends at the filter's prediction for
+        ``t + lookahead + horizon`` (the horizon adapted when ``adapt != 0``),
         applying the correction like a critically damped system (see the module docs). A frame
         with no valid part only advances the filter (the stream keeps coasting).
     """

@@ -15,7 +15,9 @@ none is named).
 function of the parameters), renders the stream at ``render_rate`` from the first valid frame
 plus one camera period (as in :func:`phjax.evaluation.evaluate_recording`), and interpolates the
 ground truth at the render times with :func:`phjax.motion.resample.interpolate_poses`
-(``max_gap`` 0.1 s: samples inside longer ground-truth gaps are ignored). :func:`tuning_data`
+(samples inside ground-truth gaps longer than ``max_gt_gap`` are ignored; default
+:func:`phjax.motion.resample.ground_truth_max_gap`: 0.1 s or 2.5 median ground-truth steps,
+whichever is longer). :func:`tuning_data`
 takes measurements that are already there instead (a real pose stream with its ground truth at
 the render times; :func:`measured_recording` builds one from a recorded stream and its ground
 truth, optionally aligning their frames) and does the rest, which both share: render samples
