@@ -525,7 +525,7 @@ def latency(
 
     Returns:
         ``Latency(lag, correlation, count)``; positive lag = estimate behind (``est(t) ~
-        gt(t - lag)``). NaN with count 0 when fewer than 3 common samples exist.
+        gt(t - lag)``). NaN with count 0 when fewer than 4 common samples exist.
 
     Cost ``O(n * max_lag / h)`` (one ``np.interp`` per candidate lag). For a zero-order-hold
     staircase the estimate is about half the hold period minus half a render period (velocity

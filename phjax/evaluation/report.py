@@ -3,8 +3,9 @@
 A ground-truth trajectory is sampled by a :class:`phjax.motion.simulate.SensorModel` (30 Hz, 5 mm,
 1 degree, 5 % dropouts by default); every method renders the pose at ``render_rate`` from those
 measurements; :func:`phjax.evaluation.metrics.evaluate` scores each stream against the ground truth
-interpolated to the render times (samples inside ground-truth gaps longer than 0.1 s are
-ignored).
+interpolated to the render times (samples inside ground-truth gaps longer than ``max_gt_gap``
+are ignored; default :func:`phjax.motion.resample.ground_truth_max_gap`: the larger of 0.1 s and
+2.5 median ground-truth steps).
 
 The baselines' parameters in :data:`TUNED` were chosen for the lowest RMSE on the development
 set (grid searches of ``experiments/tune_baselines.py`` and ``experiments/frontier.py``; see

@@ -632,7 +632,7 @@ class VideoSource(Source):
         report: called with one-line warnings (default: print them on stderr).
 
     A file is replayed at its frames' own timestamps (OpenCV's ``CAP_PROP_POS_MSEC``; a step
-    outside 1/240 s .. 2 s is replaced by the frame period). Its frame rate is the header's
+    outside 1/480 s .. 2 s is replaced by the frame period). Its frame rate is the header's
     when within :data:`VIDEO_RATES` (1-240 Hz); any other (0, 1000, 1e6, 1e-6 fps: a broken
     or a high-speed header) is taken as unknown: the file is played at 30 Hz
     (:data:`DEFAULT_VIDEO_RATE`) with one warning line. Late frames are skipped (counted in
@@ -834,9 +834,10 @@ class RealSenseSource(Source):
         width, height, fps: stream settings for both streams.
         frames: instead of a camera, any object with ``wait_for_frames(timeout_ms)`` returning
             a ``pyrealsense2.composite_frame`` (e.g. a ``pyrealsense2.syncer`` fed by a
-            ``software_device``); then ``depth_scale`` (m per unit) is taken from the depth
-            frames' sensor if possible, else from the argument.
-        depth_scale: metres per depth unit when it cannot be read (default 0.001).
+            ``software_device``); ``depth_scale`` is then used as given and must match the
+            frames' depth unit (a real camera's scale is read from its depth sensor).
+        depth_scale: metres per depth unit of ``frames`` (default 0.001; a real camera's
+            own scale is used instead).
         model_dir: YuNet model cache.
         timeout: seconds to wait for a frame before counting it as lost.
     """

@@ -28,7 +28,8 @@ argument); ``run T0`` on stdin starts the capture
 with the run's start time ``T0``; each frame's measurement comes back as one JSON line
 ``["m", t, position, quaternion, status, confidence, dropped, work]``; ``stop`` (or the end
 of stdin: the parent is gone) ends the capture and the worker sends ``["end"]``. An exception
-in the worker becomes ``["error", "Type: message (file:line)"]`` and a one-line
+in the worker becomes ``["error", LINE]`` (a ``ValueError`` / ``OSError``: its message as is;
+any other: ``"Type: message (file:line)"``) and a one-line
 :class:`~phjax.live.SourceError` in the parent; a worker that dies without a word is reported
 with its exit code. The worker's stdout goes to the parent's stderr (a stray ``print`` cannot
 corrupt the protocol).

@@ -505,8 +505,8 @@ class FaceDetector:
         backend: ``"opencv"`` (default; ``cv2.FaceDetectorYN``) or ``"kornia"``
             (``kornia.contrib.FaceDetector``, torch; batched).
         model_dir: model cache directory (default :func:`model_dir`).
-        detect_width: the image is resized to this width (aspect kept) before detection;
-            ``None`` = full resolution.
+        detect_width: a wider image is downscaled to this width (aspect kept) before
+            detection (a narrower one is not enlarged); ``None`` = full resolution.
         score_threshold: minimum score of a detection (default
             :data:`DEFAULT_SCORE_THRESHOLD` of the backend). The backends score differently:
             OpenCV's is 0.87-0.95 on faces and below 0.4 on blank and noise images; kornia's

@@ -100,7 +100,10 @@ class HeadPoseStatus(enum.IntEnum):
     OK = 0
     NO_FACE = 1  #: no face box from the detector, the tracker or the depth image
     NO_DEPTH = 2  #: too little valid depth in the frame or in the face region
-    TOO_FEW_MATCHES = 3  #: no usable feature / landmark correspondence and no prediction
+    #: no usable feature / landmark correspondence and no prediction (not reported by
+    #: :class:`HeadPoseEstimator` as it stands: once a reference exists the last pose is a
+    #: prediction, and a frame without correspondences is ``ALIGNMENT_FAILED``)
+    TOO_FEW_MATCHES = 3
     ALIGNMENT_FAILED = 4  #: the alignment did not pass the overlap / residual checks
     INVALID_INPUT = 5  #: colour / depth arrays of the wrong shape or type, or bad intrinsics
 

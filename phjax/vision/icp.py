@@ -819,7 +819,7 @@ def icp_point_to_plane(
             Kinect-like noise at 0.9 m gives 0.02-0.2 (normal radius 4-1 px).
         damping: Levenberg damping relative to ``lambda_max``.
         min_correspondences: fewer inliers give ``TOO_FEW_CORRESPONDENCES`` (the pairs of
-            ``point_pairs`` with positive weight count as inliers too).
+            ``point_pairs`` / ``pixel_pairs`` with positive weight count as inliers too).
         chunk_size: source points per block of the distance computation (static).
         point_pairs: optional fixed point-to-point correspondences ``(source (k, 3), target
             (k, 3), weights (k,))``, e.g. matched features lifted to 3-D: the cost gains
@@ -827,9 +827,11 @@ def icp_point_to_plane(
             module docstring). ``weights`` are inverse variances per coordinate (1/m^2),
             ``(k,)``, or information matrices (inverse covariances of the residual ``R
             source_k - target_k``) ``(k, 3, 3)``, for anisotropic noise; non-finite rows and
-            weights ``<= 0`` (zero trace) are ignored. Pairs are not robustified
-            (pass inliers, e.g. of :func:`phjax.ransac_align`).
-        dense_sigma: with ``point_pairs``: the noise std (m) of a unit-weight point-to-plane
+            weights ``<= 0`` (zero trace) are ignored. With the default ``pair_loss="l2"``
+            the pairs are not robustified (pass inliers, e.g. of :func:`phjax.ransac_align`);
+            a robust ``pair_loss`` (below) down-weights or drops them every iteration.
+        dense_sigma: with ``point_pairs`` or ``pixel_pairs`` (a ``ValueError`` without
+            either): the noise std (m) of a unit-weight point-to-plane
             residual; ``None`` (default) estimates it every iteration as the robust-weighted
             RMS residual (the usual IRLS scale estimate).
         pair_weight: relative weight of the pairs (multiplies ``weights``; 1 = both terms

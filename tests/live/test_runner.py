@@ -1,4 +1,4 @@
-"""The live runner: late updates, lost face, centring, shutdown, and a one-hour soak."""
+"""The live runner: late updates, lost face, centring, shutdown, and a half-hour soak."""
 
 from __future__ import annotations
 
