@@ -840,6 +840,11 @@ class RealSenseSource(Source):
             own scale is used instead).
         model_dir: YuNet model cache.
         timeout: seconds to wait for a frame before counting it as lost.
+
+    Unlike the other front-end sources, :meth:`open` does not warm up the front-end: its
+    intrinsics come with the first frame, so the head-pose front-end is built and compiled
+    while that frame is processed (the first measurement arrives a few seconds late; in a
+    :class:`phjax.live.WorkerSource`, the default, the render loop is not held meanwhile).
     """
 
     front_end = True
