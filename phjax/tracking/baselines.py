@@ -650,7 +650,8 @@ def snapshot_interpolation(
             ``(n, 4)`` wxyz (NaN rows: lost frames) and the render times ``(m,)``, s, as in
             the module docs.
         config: :class:`phjax.KalmanConfig` of the filter (the knob: its process noise;
-            default :data:`TUNED` ``["kalman"]`` noise).
+            default :data:`TUNED` ``["snapshot"]`` noise, the setting tuned for this method,
+            as :func:`phjax.evaluation.report.default_methods` runs it).
         delay: render delay, s (default: one camera period, the median frame interval).
 
     Returns:
@@ -659,7 +660,7 @@ def snapshot_interpolation(
     from .kalman import KalmanConfig
     from .tracker import _run_recording
 
-    config = KalmanConfig(**TUNED["kalman"]) if config is None else config
+    config = KalmanConfig(**TUNED["snapshot"]) if config is None else config
     t = np.asarray(times, np.float64)
     if delay is None:
         d = np.diff(t)

@@ -145,3 +145,15 @@ def test_imm_extrapolation_single_model_equals_kalman():
     ok = np.isfinite(a[1]).all(1)
     assert _angle(b[1][ok], a[1][ok]).max() < 1e-9
     np.testing.assert_array_equal(np.isnan(a[0]), np.isnan(b[0]))
+
+
+def test_snapshot_default_is_the_tuned_snapshot_baseline():
+    """Called without a config, snapshot interpolation is the tuned method the evaluation
+    reports (it used the Kalman CV's tuned noise, 0.03 / 1.0 instead of 0.09 / 3.0)."""
+    from phjax.evaluation.report import default_methods
+
+    t, mp, mq, _, _ = _cv_motion(4)
+    r = np.arange(t[0], t[-1], 1 / 120)
+    method = next(m for m in default_methods() if m.name == "snapshot interpolation")
+    for got, want in zip(snapshot_interpolation(t, mp, mq, r), method.fn(t, mp, mq, r)):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
