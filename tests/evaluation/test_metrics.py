@@ -279,6 +279,52 @@ def test_evaluate_keys_values_and_orientation_only():
     assert np.isfinite(out["rotation_rmse_deg"]) and np.isfinite(out["jerk_rotation"])
 
 
+def test_evaluate_puts_each_metric_of_the_estimate_under_its_key():
+    """Each key holds its metric of the *estimate* (the ground truth's only under ``..._gt``):
+    with a noisy, lagging estimate every smoothness metric differs between the two, so a
+    swapped key or a metric computed on the ground truth fails (the metrics themselves are
+    tested against closed forms above)."""
+    rng = np.random.default_rng(8)
+    t = np.linspace(0, 2, 401)
+    gt_p = _helix(t)
+    gt_q = _wxyz(Rotation.from_rotvec(np.outer(np.sin(t), [0, 1.0, 0])))
+    est_p = _helix(t - 0.02) + 1e-4 * rng.normal(size=gt_p.shape)
+    est_q = _wxyz(Rotation.from_rotvec(np.outer(np.sin(t - 0.03), [0, 1.0, 0])
+                                       + 1e-3 * rng.normal(size=(t.size, 3))))
+    b = t[::10] + 1e-4
+    out = evaluate(t, est_p, est_q, gt_p, gt_q, boundary_times=b)
+    lat = {"max_lag": 0.5, "window": 0.1}
+    rng_ = {"min_lag": -0.1, "max_lag": 0.3}
+    expect = {
+        "position_rmse": position_rmse(est_p, gt_p),
+        "rotation_rmse_deg": rotation_rmse_deg(est_q, gt_q),
+        "jerk_position": rms_jerk_position(t, est_p),
+        "jerk_rotation": rms_jerk_rotation(t, est_q),
+        "jerk_position_gt": rms_jerk_position(t, gt_p),
+        "jerk_rotation_gt": rms_jerk_rotation(t, gt_q),
+        "curvature": mean_abs_curvature(t, est_p),
+        "torsion": mean_abs_torsion(t, est_p),
+        "velocity_jump": max_velocity_jump(t, est_p, b),
+        "angular_velocity_jump": max_angular_velocity_jump(t, est_q, b),
+        "latency_position": latency(t, est_p, gt_p, kind="position", **lat),
+        "latency_rotation": latency(t, est_q, gt_q, kind="rotation", **lat),
+        "lag_position": metrics.shift_lag(t, est_p, gt_p, kind="position", **rng_),
+        "lag_rotation": metrics.shift_lag(t, est_q, gt_q, kind="rotation", **rng_),
+    }
+    for k, res in expect.items():
+        assert out[k] == pytest.approx(res.value, rel=1e-12, abs=1e-15), k
+        assert out[k + "_n"] == res.count, k
+    # the estimate's smoothness metrics are not the ground truth's
+    for k, fn, gt in (("jerk_position", rms_jerk_position, gt_p),
+                      ("jerk_rotation", rms_jerk_rotation, gt_q),
+                      ("curvature", mean_abs_curvature, gt_p),
+                      ("torsion", mean_abs_torsion, gt_p)):
+        assert abs(out[k] - fn(t, gt).value) > 0.01 * abs(fn(t, gt).value), k
+    # a lagging estimate: both lag estimates see it (20 / 30 ms behind)
+    assert out["lag_position"] == pytest.approx(0.02, abs=0.005)
+    assert out["lag_rotation"] == pytest.approx(0.03, abs=0.005)
+
+
 def test_fd_weights_reproduce_polynomial_derivatives():
     rng = np.random.default_rng(3)
     d = np.sort(rng.uniform(-1, 1, (10, 5)), axis=1) * 0.1
