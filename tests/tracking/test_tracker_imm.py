@@ -73,13 +73,23 @@ def test_adaptive_factor_follows_the_modes():
     imm = IMMConfig()
     cfg = pj.TrackerConfig(imm=imm, adapt=0.7)
     st = pj.tracking.imm_init(imm, 0.0, jnp.zeros(3), jnp.array([1.0, 0, 0, 0]))
-    def with_modes(p):
+    def with_modes(p, r=None):
         lm = jnp.log(jnp.asarray(p))
-        return eqx.tree_at(lambda s: (s.pos_log_mu, s.rot_log_mu), st, (lm, lm))
+        lr = lm if r is None else jnp.log(jnp.asarray(r))
+        return eqx.tree_at(lambda s: (s.pos_log_mu, s.rot_log_mu), st, (lm, lr))
 
     quiet, fast = with_modes([1.0, 1e-30, 1e-30]), with_modes([1e-30, 1e-30, 1.0])
     fq = float(tracker._adaptive_factor(cfg, quiet, jnp.float64))
     ff = float(tracker._adaptive_factor(cfg, fast, jnp.float64))
     np.testing.assert_allclose([fq, ff], [np.exp(0.7), np.exp(-0.7)], rtol=1e-12)
+    # the mean of the two parts' expected mode indices: a quiet position and a fast rotation
+    # (or the reverse) give m = 0.5, factor 1; the middle position mode alone gives m = 0.25
+    for mixed in (with_modes([1.0, 1e-30, 1e-30], [1e-30, 1e-30, 1.0]),
+                  with_modes([1e-30, 1e-30, 1.0], [1.0, 1e-30, 1e-30])):
+        assert float(tracker._adaptive_factor(cfg, mixed, jnp.float64)) == pytest.approx(
+            1.0, rel=1e-12)
+    half = with_modes([1e-30, 1.0, 1e-30], [1.0, 1e-30, 1e-30])
+    assert float(tracker._adaptive_factor(cfg, half, jnp.float64)) == pytest.approx(
+        np.exp(0.7 * 0.5), rel=1e-12)
     assert float(tracker._adaptive_factor(pj.TrackerConfig(imm=None, adapt=0.7), None,
                                           jnp.float64)) == 1.0
