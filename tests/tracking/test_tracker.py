@@ -94,8 +94,9 @@ def test_stream_is_c1_across_camera_frames(head, lookahead):
     speed = np.linalg.norm((P[:, 3] - P[:, 2]) / EPS, axis=-1)
     vb, va = (P[:, 1] - P[:, 0]) / EPS, (P[:, 3] - P[:, 2]) / EPS
     assert np.abs(P[:, 2] - P[:, 1]).max() < 5 * EPS * (1 + speed.max())
-    # velocity continuous up to the O(eps * acceleration) of one-sided differences
-    assert np.linalg.norm(va - vb, axis=-1).max() < 1e-3 * (1 + speed.max())
+    # velocity continuous up to the O(eps * acceleration) of one-sided differences; measured
+    # 1.4e-4 / 1.7e-4 m/s (lookahead 0 / 40 ms) at a top speed of 0.28 m/s, bound 3.7x that
+    assert np.linalg.norm(va - vb, axis=-1).max() < 5e-4 * (1 + speed.max())
     wb, wa = _world_omega(Q[:, 0], Q[:, 1], EPS), _world_omega(Q[:, 2], Q[:, 3], EPS)
     w_max = float(np.linalg.norm(wa, axis=-1).max())
     assert w_max > 0.5  # the head really turns at these frames
