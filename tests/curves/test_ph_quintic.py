@@ -962,12 +962,13 @@ def test_float32_accuracy():
     c = pj.hermite_quintic(p0, p1, d0, d1)
     assert c.control_points.dtype == jnp.float32
     c64 = pj.hermite_quintic(*(x.astype(np.float64) for x in (p0, p1, d0, d1)))
-    # documented float32 accuracy: end point within 1e-4 (relative to unit-size data)
+    # documented float32 accuracy: end point within 1e-4 (relative to unit-size data); measured
+    # 7.4e-6 for the end point and along the curve, bounds about 7x that
     err = np.abs(np.asarray(c.position(1.0), np.float64) - p1).max()
-    assert err < 1e-4, err
+    assert err < 5e-5, err
     t = np.linspace(0, 1, 7, dtype=np.float32)
     dev = np.abs(np.asarray(c.position(t), np.float64) - np.asarray(c64.position(t))).max()
-    assert dev < 1e-3, dev
+    assert dev < 5e-5, dev
     assert np.all(np.isfinite(np.asarray(c.frame(t))))
     assert c.frame(t).dtype == jnp.float32
 
