@@ -251,10 +251,12 @@ def test_nan_before_first_measurement_and_coasting_stops(head):
     P, Q = (np.asarray(x) for x in pj.track(mt, mp, mq, r, dtype=jnp.float64))
     early = r < mt[0]
     assert np.all(np.isnan(P[early])) and np.all(np.isfinite(P[~early]))
-    # long after the last frame the pose has come to rest (bounded coast)
+    # long after the last frame the pose has come to rest (bounded coast): measured steps of
+    # 6e-12 m between samples a second on, and 7.4 mm from the last measurement (the coast
+    # plus the filter's estimate against a 5 mm-noise measurement); bounds 1e-9 m and 2 cm
     tail = r > mt[-1] + 1.0
-    assert np.abs(np.diff(P[tail], axis=0)).max() < 1e-6
-    assert np.abs(P[tail][-1] - mp[np.isfinite(mp).all(-1)][-1]).max() < 0.2
+    assert np.abs(np.diff(P[tail], axis=0)).max() < 1e-9
+    assert np.abs(P[tail][-1] - mp[np.isfinite(mp).all(-1)][-1]).max() < 0.02
 
 
 def test_orientation_only_input(head):
