@@ -93,3 +93,23 @@ def test_adaptive_factor_follows_the_modes():
         np.exp(0.7 * 0.5), rel=1e-12)
     assert float(tracker._adaptive_factor(pj.TrackerConfig(imm=None, adapt=0.7), None,
                                           jnp.float64)) == 1.0
+
+
+def test_adaptive_horizon_reaches_each_segment(head):
+    """Each update's segment settles over ``horizon * _adaptive_factor`` of the updated
+    filter's modes: the first piece (to the knot) lasts ``0.4`` of that, exactly, and it
+    changes from frame to frame as the modes do (a factor computed but not used, or taken from
+    the filter before the update, fails)."""
+    mt, mp, mq = head
+    st = pj.tracker_init(CFG, 0.0, jnp.float64)
+    knots, expect = [], []
+    for k in range(60):
+        st = pj.tracker_update(CFG, st, mt[k] - mt[0], mp[k], mq[k])
+        if k < 2 or not (np.isfinite(mp[k]).all() and np.isfinite(mq[k]).all()):
+            continue
+        start = np.asarray(st.segment.start)
+        knots.append(start[1] - start[0])
+        expect.append(tracker._KNOT * CFG.horizon
+                      * float(tracker._adaptive_factor(CFG, st.filter, jnp.float64)))
+    np.testing.assert_allclose(knots, expect, rtol=1e-12)
+    assert np.ptp(knots) > 0.05 * np.mean(knots)  # the modes, and with them the horizon, move
