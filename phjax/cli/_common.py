@@ -135,7 +135,6 @@ def file_name(text: str) -> str:
     return text
 
 
-
 #: the largest random seed (the one range of every seed: ``synthetic:N:SEED`` sources too)
 MAX_SEED = 2**32 - 1
 

@@ -102,10 +102,11 @@ class TrackerStream:
             origin in float64 before the float32 state sees them, which would round a time of
             1.7e9 s to 128 s. A ``jax.Array`` time is taken as relative to the origin already
             (0 unless ``t`` was given) and passed on unchanged; such an update also skips the
-            one-part completion below (its position and quaternion go to the filter as given). The state's times still grow
-            with uptime: in float32, constant motion at 0.2 m/s and 60 deg/s is rendered within
-            0.3 mm / 0.1 deg after 4 h and 2.5 mm / 0.75 deg after 24 h (measured); for longer
-            sessions start a new stream (or use float64).
+            one-part completion below (its position and quaternion go to the filter as
+            given). The state's times still grow with uptime: in float32, constant motion at
+            0.2 m/s and 60 deg/s is rendered within 0.3 mm / 0.1 deg after 4 h and 2.5 mm /
+            0.75 deg after 24 h (measured); for longer sessions start a new stream (or use
+            float64).
         dtype: floating dtype of the state (default float32, the real-time precision; float64
             needs ``jax_enable_x64``).
         fast_start: compile the first update quickly (XLA ``-O0``: on a 2-core CPU 2.2 s

@@ -9,6 +9,7 @@ from hypothesis import given, settings, strategies as st
 import phjax as pj
 from phjax.motion import resample, simulate
 from phjax.tracking import tracker
+from stream_checks import world_omega
 
 EPS = 1e-6
 
@@ -64,14 +65,6 @@ def test_quaternion_hermite_degenerate_finite():
 
 
 # ------------------------------------------------------------------------------ stream
-def _world_omega(qa, qb, dt):
-    """World-frame angular velocity ``2 q' q*`` by a central difference of two unit quaternions
-    ``dt`` apart, at their midpoint (independent of the tracker's own velocity formulas)."""
-    qa, qb = np.asarray(qa), np.asarray(qb)
-    qm = (qa + qb) / np.linalg.norm(qa + qb, axis=-1, keepdims=True)
-    return 2 * np.asarray(pj.quat_mul((qb - qa) / dt, pj.quat_conj(qm)))[..., 1:]
-
-
 def _one_sided(x, eps, side):
     """Second-order one-sided derivative at ``x[..., 0, :]`` from samples ``eps`` apart going
     ``side`` (+1 forward, -1 backward): ``x[..., k, :]`` is the sample at ``side * k * eps``."""
@@ -97,7 +90,7 @@ def test_stream_is_c1_across_camera_frames(head, lookahead):
     # velocity continuous up to the O(eps * acceleration) of one-sided differences; measured
     # 1.4e-4 / 1.7e-4 m/s (lookahead 0 / 40 ms) at a top speed of 0.28 m/s, bound 3.7x that
     assert np.linalg.norm(va - vb, axis=-1).max() < 5e-4 * (1 + speed.max())
-    wb, wa = _world_omega(Q[:, 0], Q[:, 1], EPS), _world_omega(Q[:, 2], Q[:, 3], EPS)
+    wb, wa = world_omega(Q[:, 0], Q[:, 1], EPS), world_omega(Q[:, 2], Q[:, 3], EPS)
     w_max = float(np.linalg.norm(wa, axis=-1).max())
     assert w_max > 0.5  # the head really turns at these frames
     # measured: 1.5e-4 rad/s (the O(eps * angular acceleration) of the differences); an angular

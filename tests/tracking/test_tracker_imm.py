@@ -10,6 +10,7 @@ import phjax as pj
 from phjax.motion import simulate
 from phjax.tracking import tracker
 from phjax.tracking.imm import IMMConfig
+from stream_checks import world_omega
 
 EPS = 1e-6
 CFG = pj.TrackerConfig(imm=IMMConfig(), adapt=0.5)
@@ -34,12 +35,8 @@ def test_imm_stream_is_c1_and_causal(head):
     assert np.abs(P[:, 2] - P[:, 1]).max() < 5 * EPS * (1 + speed.max())
     assert np.linalg.norm(va - vb, axis=-1).max() < 1e-3 * (1 + speed.max())
     # the world-frame angular velocity *vector* (speeds alone would miss one taken in the
-    # wrong frame), by central differences of the quaternions as in test_tracker.py
-    def omega(qa, qb):
-        qm = (qa + qb) / np.linalg.norm(qa + qb, axis=-1, keepdims=True)
-        return 2 * np.asarray(pj.quat_mul((qb - qa) / EPS, pj.quat_conj(qm)))[..., 1:]
-
-    wb, wa = omega(Q[:, 0], Q[:, 1]), omega(Q[:, 2], Q[:, 3])
+    # wrong frame)
+    wb, wa = world_omega(Q[:, 0], Q[:, 1], EPS), world_omega(Q[:, 2], Q[:, 3], EPS)
     w_max = float(np.linalg.norm(wa, axis=-1).max())
     assert w_max > 0.5  # the head really turns at these frames
     # measured 2.1e-3 rad/s at w_max 2.5 rad/s, proportional to EPS (4.2e-3 at 2e-6, 1.0e-3 at
