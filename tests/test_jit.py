@@ -54,6 +54,36 @@ def test_extra_compiler_options_compile_their_own_program():
     assert f._top is first and first._cache_size() == 1  # the first program again
 
 
+def test_a_functions_own_options_come_last(monkeypatch):
+    """``jit(options=...)``: the function's own XLA options are added over COMPILER_OPTIONS and
+    over an extra_compiler_options block (they reach XLA: an unknown one is rejected by
+    name); the synthetic head's renderer compiles with IMAGE_COMPILER_OPTIONS, so its frames
+    are the same program under the suite's -O0 as for users."""
+    seen = []
+    real_jit = jax.jit
+
+    def spy(fun, **kwargs):
+        seen.append(kwargs.get("compiler_options"))
+        return real_jit(fun, **kwargs)
+
+    f = _jit.jit(lambda x: x * 2, options={"xla_backend_optimization_level": 3})
+    monkeypatch.setattr(jax, "jit", spy)
+    with _jit.extra_compiler_options(xla_backend_optimization_level=0,
+                                     xla_cpu_enable_fast_math=False):
+        assert float(f(jnp.asarray(1.5))) == 3.0
+    assert seen == [{**_jit.COMPILER_OPTIONS, "xla_cpu_enable_fast_math": False,
+                     "xla_backend_optimization_level": 3}]
+    monkeypatch.setattr(jax, "jit", real_jit)
+    bad = _jit.jit(lambda x: x + 1, options={"xla_no_such_phjax_option": True})
+    with pytest.raises(Exception, match="xla_no_such_phjax_option"):
+        bad(jnp.asarray(1.0))
+
+    from phjax.vision import synthetic_rgbd
+
+    for name in ("_wall_jit", "_render_jit", "_frame_jit"):
+        assert getattr(synthetic_rgbd, name)._options == _jit.IMAGE_COMPILER_OPTIONS, name
+
+
 class _Scaled(eqx.Module):
     scale: jax.Array
     name: str = eqx.field(static=True)

@@ -425,13 +425,14 @@ def frame_cache_dir() -> Path | None:
 def _renderer_key() -> str:
     """A digest of the code a synthetic frame comes from: the renderer and the head motion
     (:mod:`phjax.vision.synthetic_rgbd`, :mod:`phjax.motion.simulate`,
-    :func:`phjax.vision.rgbd_io.synthetic_rgbd`), JAX's and NumPy's versions (a change renders
-    the frames anew)."""
+    :func:`phjax.vision.rgbd_io.synthetic_rgbd`), its XLA options (they change the rounding of
+    a pixel) and JAX's and NumPy's versions (a change renders the frames anew)."""
     import hashlib
     import inspect
 
     import jax
 
+    from .._jit import IMAGE_COMPILER_OPTIONS
     from ..motion import simulate
     from ..vision import rgbd_io, synthetic_rgbd
 
@@ -439,6 +440,7 @@ def _renderer_key() -> str:
     for mod in (synthetic_rgbd, simulate):
         h.update(Path(mod.__file__).read_bytes())
     h.update(inspect.getsource(rgbd_io.synthetic_rgbd).encode())
+    h.update(repr(sorted(IMAGE_COMPILER_OPTIONS.items())).encode())
     h.update(f"jax {jax.__version__} numpy {np.__version__}".encode())
     return h.hexdigest()[:16]
 

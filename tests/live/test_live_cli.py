@@ -48,7 +48,7 @@ ACCEPTANCE_FRAMES = 181
 @pytest.mark.serial
 def test_acceptance_synthetic_opentrack(listener, model_cache, tmp_path, cli_jax_config, capsys):  # noqa: F811
     """phjax live synthetic:181 --output opentrack://127.0.0.1:PORT --rate 120 --duration 6
-    (the 181 frames of 6 s at 30 Hz: each is rendered before the run, ~0.16 s of CPU each)."""
+    (the 181 frames of 6 s at 30 Hz, rendered before the run: about 40 s on 2 cores)."""
     log = tmp_path / "sent.tum"
     rate = 120.0
     rc = main(["live", f"synthetic:{ACCEPTANCE_FRAMES}", "--output", f"opentrack://127.0.0.1:{listener.port}",
