@@ -46,6 +46,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import shutil
 import sys
 import threading
 import time
@@ -405,6 +406,9 @@ def _with_models(make):
 FRAME_CACHE_ENV = "PHJAX_FRAME_CACHE"
 #: depth resolution of the frame cache, m (the simulated sensor's own steps are >= 0.46 mm)
 CACHE_DEPTH_STEP = 1e-4
+#: a frame folder of another renderer version (another phjax, JAX or NumPy) that no run has
+#: used for this long is removed when the synthetic head is next opened, s
+STALE_FRAME_FOLDER_AGE = 30 * 86400.0
 
 
 def frame_cache_dir() -> Path | None:
@@ -480,8 +484,10 @@ class SyntheticSource(RGBDReplaySource):
     :data:`CACHE_DEPTH_STEP`, 1.5 MB a frame at 640 x 480, one file per frame named by a
     digest of what it is rendered from, so a frame is rendered once for every ``N`` that
     shows it, and a change of the renderer's code or of JAX renders it anew). Playing them
-    back reads a frame in about a millisecond, as a camera delivers it. Delete the folder to
-    free the space.
+    back reads a frame in about a millisecond, as a camera delivers it. Each renderer version
+    has its own folder; :meth:`open` marks this one as used and removes the folders of other
+    versions unused for 30 days (:data:`STALE_FRAME_FOLDER_AGE`, one line on ``report``).
+    Delete the folder to free the space sooner.
 
     Arguments:
         num_frames, seed: as :func:`phjax.vision.open_rgbd` ``("synthetic:N:SEED")``.
@@ -542,6 +548,8 @@ class SyntheticSource(RGBDReplaySource):
                             f"({e.strerror or type(e).__name__}); rendering the frames in "
                             "memory for this run")
                 self.cache = None
+        if self.folder is not None:
+            self._mark_used_and_prune()
         missing = [i for i in range(self.num_frames) if self._read(i) is None]
         self.rendered = len(missing)
         if missing:
@@ -552,6 +560,33 @@ class SyntheticSource(RGBDReplaySource):
              for i in range(self.num_frames)], stamps, intr, rendered.name,
             rendered.ground_truth, rendered.ground_truth_kind)
         super().open()
+
+    def _mark_used_and_prune(self) -> None:
+        """Mark this renderer's frame folder as used now (its time stamp) and remove the
+        folders of other renderer versions that no run has used for
+        :data:`STALE_FRAME_FOLDER_AGE` (each is 1.5 MB a frame, and a new phjax or JAX renders
+        into a new one); one report line when something was removed."""
+        folder = self.folder
+        try:
+            os.utime(folder)
+        except OSError:
+            return
+        now, removed, freed = time.time(), 0, 0
+        for other in self.cache.glob("synthetic-*"):
+            try:
+                if (other.name == folder.name or not other.is_dir()
+                        or now - other.stat().st_mtime < STALE_FRAME_FOLDER_AGE):
+                    continue
+                size = sum(f.stat().st_size for f in other.iterdir() if f.is_file())
+            except OSError:
+                continue
+            shutil.rmtree(other, ignore_errors=True)
+            if not other.exists():
+                removed, freed = removed + 1, freed + size
+        if removed:
+            self.report(f"synthetic head: removed {removed} frame folder(s) of other renderer "
+                        f"versions unused for {STALE_FRAME_FOLDER_AGE / 86400:.0f} days from "
+                        f"{self.cache} ({freed / 2**20:.0f} MB)")
 
     def _path(self, i: int) -> Path:
         return self.folder / f"{self._keys[i]}.bin"

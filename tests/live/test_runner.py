@@ -619,11 +619,31 @@ def test_synthetic_frames_are_rendered_once_into_the_cache(tmp_path):
     from phjax.live._sources import CACHE_DEPTH_STEP, _frame_keys
     from phjax.vision import open_rgbd, synthetic_rgbd_sequence
 
+    # folders of other renderer versions: removed once unused for 30 days, not before
+    day = 86400.0
+    for name, age in (("synthetic-0ld", 31), ("synthetic-recent", 29)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "frame.bin").write_bytes(bytes(3 << 20))
+        os.utime(tmp_path / name, (time.time() - age * day,) * 2)
+    (tmp_path / "synthetic-file").write_text("not a folder")
+    os.utime(tmp_path / "synthetic-file", (time.time() - 40 * day,) * 2)
     lines = []
     src = SyntheticSource(3, 1, estimator=_SlowEstimator(0.0), cache=tmp_path,
                           report=lines.append)
     src.open()
+    assert lines[0] == (f"synthetic head: removed 1 frame folder(s) of other renderer versions "
+                        f"unused for 30 days from {tmp_path} (3 MB)"), lines
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["synthetic-recent", "synthetic-file", src.folder.name])
+    lines.pop(0)
     assert src.rendered == 3 and len(lines) == 2 and "rendering 3 of 3 frames" in lines[0]
+    # a run that renders nothing still marks its folder as used
+    os.utime(src.folder, (time.time() - 40 * day,) * 2)
+    again = SyntheticSource(3, 1, estimator=_SlowEstimator(0.0), cache=tmp_path,
+                            report=lines.append)
+    again.open()
+    assert again.rendered == 0 and len(lines) == 2
+    assert time.time() - src.folder.stat().st_mtime < day
     ref = open_rgbd("synthetic:3:1")
     np.testing.assert_array_equal(src.sequence.timestamps, ref.timestamps)
     for i in range(3):
