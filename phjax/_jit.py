@@ -44,9 +44,9 @@ FAST_COMPILER_OPTIONS = {**COMPILER_OPTIONS, "xla_backend_optimization_level": 0
 #: the options of image-sized programs (the synthetic head's renderer), added over the others:
 #: XLA's fusion emitters and full optimisation. A frame's program is a few large element-wise
 #: fusions over hundreds of thousands of pixels, where the fusion emitters' code runs 1.9 x
-#: faster (a 640x480 frame: 0.24 instead of 0.46 s of CPU time, compiled in the same time) and
-#: ``-O0`` code (the test suite's level, see ``tests/conftest.py``) 5 x slower. Fixed here, so
-#: a rendered frame is the same program whatever the process's ``XLA_FLAGS``.
+#: faster (a 640x480 frame: 0.24 instead of 0.46 s of CPU time, compiled in the same time); at
+#: ``-O0`` (the test suite's level, see ``tests/conftest.py``) it took 1.3 s. Fixed here, so a
+#: rendered frame is the same program whatever the process's ``XLA_FLAGS``.
 IMAGE_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": True,
                           "xla_backend_optimization_level": 3}
 

@@ -46,6 +46,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import re
 import shutil
 import sys
 import threading
@@ -409,6 +410,9 @@ CACHE_DEPTH_STEP = 1e-4
 #: a frame folder of another renderer version (another phjax, JAX or NumPy) that no run has
 #: used for this long is removed when the synthetic head is next opened, s
 STALE_FRAME_FOLDER_AGE = 30 * 86400.0
+#: names of the frame folders and of the files in them (frames, and a frame being written)
+_FRAME_FOLDER = re.compile(r"synthetic-[0-9a-f]{16}")
+_FRAME_FILE = re.compile(r"[0-9a-f]{24}\.bin|\.[0-9a-f]{24}\.bin\.\d+\.\d+\.tmp")
 
 
 def frame_cache_dir() -> Path | None:
@@ -565,7 +569,8 @@ class SyntheticSource(RGBDReplaySource):
         """Mark this renderer's frame folder as used now (its time stamp) and remove the
         folders of other renderer versions that no run has used for
         :data:`STALE_FRAME_FOLDER_AGE` (each is 1.5 MB a frame, and a new phjax or JAX renders
-        into a new one); one report line when something was removed."""
+        into a new one). Only folders named and filled as this class writes them are removed
+        (a folder of the user's in the cache is kept); one report line when something was."""
         folder = self.folder
         try:
             os.utime(folder)
@@ -574,10 +579,14 @@ class SyntheticSource(RGBDReplaySource):
         now, removed, freed = time.time(), 0, 0
         for other in self.cache.glob("synthetic-*"):
             try:
-                if (other.name == folder.name or not other.is_dir()
+                if (other.name == folder.name or not _FRAME_FOLDER.fullmatch(other.name)
+                        or not other.is_dir()
                         or now - other.stat().st_mtime < STALE_FRAME_FOLDER_AGE):
                     continue
-                size = sum(f.stat().st_size for f in other.iterdir() if f.is_file())
+                files = list(other.iterdir())
+                if not all(f.is_file() and _FRAME_FILE.fullmatch(f.name) for f in files):
+                    continue  # not only frames: not ours to remove
+                size = sum(f.stat().st_size for f in files)
             except OSError:
                 continue
             shutil.rmtree(other, ignore_errors=True)

@@ -621,12 +621,16 @@ def test_synthetic_frames_are_rendered_once_into_the_cache(tmp_path):
 
     # folders of other renderer versions: removed once unused for 30 days, not before
     day = 86400.0
-    for name, age in (("synthetic-0ld", 31), ("synthetic-recent", 29)):
-        (tmp_path / name).mkdir()
-        (tmp_path / name / "frame.bin").write_bytes(bytes(3 << 20))
+    old, recent, notes = "synthetic-" + "0" * 16, "synthetic-" + "1" * 16, "synthetic-notes"
+    mixed = "synthetic-" + "5" * 16  # a frame folder's name, but not only frames in it
+    frame = "2" * 24 + ".bin"
+    for name, age, file in ((old, 31, frame), (recent, 29, frame), (notes, 40, frame),
+                            (mixed, 40, frame), (mixed, 40, "notes.txt")):
+        (tmp_path / name).mkdir(exist_ok=True)
+        (tmp_path / name / file).write_bytes(bytes(3 << 20))
         os.utime(tmp_path / name, (time.time() - age * day,) * 2)
-    (tmp_path / "synthetic-file").write_text("not a folder")
-    os.utime(tmp_path / "synthetic-file", (time.time() - 40 * day,) * 2)
+    (tmp_path / ("synthetic-" + "4" * 16)).write_text("a file, not a folder")
+    os.utime(tmp_path / ("synthetic-" + "4" * 16), (time.time() - 40 * day,) * 2)
     lines = []
     src = SyntheticSource(3, 1, estimator=_SlowEstimator(0.0), cache=tmp_path,
                           report=lines.append)
@@ -634,7 +638,7 @@ def test_synthetic_frames_are_rendered_once_into_the_cache(tmp_path):
     assert lines[0] == (f"synthetic head: removed 1 frame folder(s) of other renderer versions "
                         f"unused for 30 days from {tmp_path} (3 MB)"), lines
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
-        ["synthetic-recent", "synthetic-file", src.folder.name])
+        [recent, notes, mixed, "synthetic-" + "4" * 16, src.folder.name])  # only the old frames
     lines.pop(0)
     assert src.rendered == 3 and len(lines) == 2 and "rendering 3 of 3 frames" in lines[0]
     # a run that renders nothing still marks its folder as used
