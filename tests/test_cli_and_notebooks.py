@@ -212,6 +212,7 @@ def test_test_config_reruns_worker_crashes_only(tmp_path):
         "def test_native_crash_once():\n"
         "    if not FLAG.exists():\n"
         "        FLAG.write_text('1')\n"
+        "        time.sleep(2)  # see below\n"
         "        ctypes.string_at(0)  # segmentation fault\n"
         "@pytest.mark.timeout(3)  # the repository's timeout, shortened for this test\n"
         "def test_hang_once():\n"
@@ -221,6 +222,11 @@ def test_test_config_reruns_worker_crashes_only(tmp_path):
         "def test_assertion():\n"
         "    assert 1 == 2\n"
     )
+    # The crash waits 2 s, as a real one comes during a test's work: pytest-rerunfailures
+    # (16.7) learns a test's rerun count from a message its worker sends without waiting
+    # for it to arrive, just before the test starts. A crash at once raced that message: in
+    # one CI run of the suite the controller handled the crash first, read 0 reruns and
+    # reported a failure.
     out = subprocess.run([sys.executable, "-m", "pytest", "-n", "2", "-q", "-p", "no:cacheprovider"],
                          cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert flag.exists() and hung.exists()  # the crash and the hang happened
