@@ -602,7 +602,8 @@ def make_excerpt(
     pq[:n] = gt_q
     pt = pt - origin
     key = jax.random.fold_in(jax.random.key(seed), window.uid)
-    mt, mp, mq = (np.array(x, np.float64) for x in simulate_measurements(key, pt, pp, pq, sensor))
+    mt, mp, mq = (np.array(x, np.float64) for x in simulate_measurements(
+        key, pt, pp, pq, sensor, max_gt_gap=rec.max_gap(protocol)))
     if mt.shape[0] != shapes.frames:
         raise AssertionError(f"expected {shapes.frames} frames, got {mt.shape[0]}")
     beyond = mt > (gt_t[-1] - origin) + 1e-9

@@ -318,7 +318,8 @@ def compare_at_display(
 
     cfg0 = TrackerConfig() if tracker_config is None else tracker_config
     gt_t, gt_p, gt_q, (mt, mp, mq), render, _ = simulate_and_grid(
-        gt_times, gt_positions, gt_quaternions, sensor=sensor, render_rate=render_rate, seed=seed)
+        gt_times, gt_positions, gt_quaternions, sensor=sensor, render_rate=render_rate, seed=seed,
+        max_gt_gap=max_gt_gap)
     steps = [(L, b) for L in lookaheads for b in (None, *baselines_)]
     if progress:
         from tqdm.auto import tqdm

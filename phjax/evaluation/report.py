@@ -160,8 +160,9 @@ def evaluate_recording(
         seed: random seed of the sensor simulation.
         methods: methods to run (default :func:`default_methods`).
         progress: show a progress bar (tqdm) over methods.
-        max_gt_gap: ground-truth gaps longer than this (s) are excluded from the metrics
-            (default: :func:`phjax.motion.resample.ground_truth_max_gap`, 0.1 s or 2.5 median
+        max_gt_gap: ground-truth gaps longer than this (s) are excluded from the metrics, and
+            the simulated sensor loses its frames there (default:
+            :func:`phjax.motion.resample.ground_truth_max_gap`, 0.1 s or 2.5 median
             ground-truth steps).
 
     Returns:
@@ -169,7 +170,8 @@ def evaluate_recording(
     """
     methods = default_methods() if methods is None else methods
     gt_t, gt_p, gt_q, (mt, mp, mq), render, origin = simulate_and_grid(
-        gt_times, gt_positions, gt_quaternions, sensor=sensor, render_rate=render_rate, seed=seed)
+        gt_times, gt_positions, gt_quaternions, sensor=sensor, render_rate=render_rate, seed=seed,
+        max_gt_gap=max_gt_gap)
     valid = np_any_part(mp, mq)
     gp, gq = interpolate_poses(gt_t, gt_p, gt_q, render,
                                max_gap=ground_truth_max_gap(gt_t, max_gt_gap))
@@ -199,7 +201,7 @@ MIN_RENDER_SAMPLES = 8
 
 def simulate_and_grid(gt_times, gt_positions, gt_quaternions, *,
                       sensor: SensorModel | None = None, render_rate: float = 120.0,
-                      seed: int = 0):
+                      seed: int = 0, max_gt_gap: float | None = None):
     """The measurements and render grid of :func:`evaluate_recording`.
 
     Times are shifted to start at the first ground-truth sample; render times run at
@@ -216,7 +218,7 @@ def simulate_and_grid(gt_times, gt_positions, gt_quaternions, *,
     gt_t = gt_times - origin
     gt_p = np.asarray(gt_positions, np.float64)
     gt_q = np.asarray(gt_quaternions, np.float64)
-    frames = simulate_measurements(seed, gt_t, gt_p, gt_q, sensor)
+    frames = simulate_measurements(seed, gt_t, gt_p, gt_q, sensor, max_gt_gap=max_gt_gap)
     mt, mp, mq = (np.asarray(x, np.float64) for x in frames)
     valid = np_any_part(mp, mq)
     if not np.any(valid):

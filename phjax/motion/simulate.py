@@ -18,7 +18,7 @@ from .._np_quat import np_qconj as _np_qconj
 from .._np_quat import np_qmul as _np_qmul
 from .._sizes import MIN_RENDER, pad_samples, size_class, unpad_rows
 from ..quaternion import quat_from_rotvec, quat_mul
-from .resample import interpolate_poses
+from .resample import ground_truth_max_gap, interpolate_poses
 
 __all__ = ["SensorModel", "simulate_measurements", "synthetic_head_motion"]
 
@@ -58,6 +58,8 @@ def simulate_measurements(
     gt_positions: Float[ArrayLike, "n 3"],
     gt_quaternions: Float[ArrayLike, "n 4"],
     model: SensorModel = SensorModel(),
+    *,
+    max_gt_gap: float | None = None,
 ) -> tuple[Float[Array, " m"], Float[Array, "m 3"], Float[Array, "m 4"]]:
     """Sample a ground-truth trajectory with the sensor ``model``.
 
@@ -66,6 +68,13 @@ def simulate_measurements(
     range). The ground truth is interpolated there with :func:`~phjax.motion.resample.interpolate_poses`
     (linear / slerp; NaN ground-truth rows are skipped), noise is added, and each frame is
     dropped with probability ``dropout`` (NaN row). Returned timestamps are ``s_k + latency``.
+
+    **Ground-truth gaps.** An instant strictly inside a gap between valid ground-truth samples
+    longer than ``max_gt_gap`` (default :func:`~phjax.motion.resample.ground_truth_max_gap`,
+    the rule the evaluation uses to leave such gaps unscored) gives a lost frame (NaN row):
+    the motion there is unknown, and a straight line through the gap would hand the filters
+    an easy, made-up motion to predict. ``max_gt_gap=float("inf")`` interpolates across every
+    gap. Positions and orientations are checked each where the ground truth has them.
 
     Orientation-only ground truth (NaN positions) gives NaN positions and noisy orientations.
     Deterministic for a given key / integer seed and dtype (JAX draws different samples in
@@ -87,13 +96,16 @@ def simulate_measurements(
         gt_times, gt_positions, gt_quaternions: ground truth (``wxyz``), times non-decreasing,
             ``(*B, n)``, ``(*B, n, 3)``, ``(*B, n, 4)``.
         model: the :class:`SensorModel` (shared by a batch).
+        max_gt_gap: the longest ground-truth gap (s) a frame may be interpolated across (see
+            above; for a batch, one value or the default rule per recording).
 
     Returns:
         ``(times (*B, m), positions (*B, m, 3), quaternions (*B, m, 4))`` in the ground-truth
         dtype.
     """
     if np.ndim(gt_times) > 1:
-        return _simulate_batch(key_or_seed, gt_times, gt_positions, gt_quaternions, model)
+        return _simulate_batch(key_or_seed, gt_times, gt_positions, gt_quaternions, model,
+                               max_gt_gap)
     gt_t = np.asarray(gt_times, dtype=np.float64)
     if gt_t.ndim != 1 or gt_t.size == 0 or not np.all(np.isfinite(gt_t)):
         raise ValueError("gt_times must be a non-empty 1-D array of finite times")
@@ -106,6 +118,9 @@ def simulate_measurements(
         raise ValueError(f"dropout must be in [0, 1), got {model.dropout}")
     if min(float(model.sigma_p), float(model.sigma_r), jitter) < 0:
         raise ValueError("sigma_p, sigma_r and jitter must be non-negative")
+    max_gap = ground_truth_max_gap(gt_t, max_gt_gap)
+    if not max_gap > 0:  # NaN included
+        raise ValueError(f"max_gt_gap must be positive (inf: no limit), got {max_gt_gap}")
     # host arrays: jnp.asarray of a NumPy array compiles a small program for every shape
     gt_p, gt_q = np.asarray(gt_positions), np.asarray(gt_quaternions)
     if gt_p.shape != (gt_t.size, 3) or gt_q.shape != (gt_t.size, 4):
@@ -138,21 +153,28 @@ def simulate_measurements(
     gt = pad_samples((gt_t - t0).astype(dtype), gt_p.astype(dtype), gt_q.astype(dtype),
                      (sample_t - t0).astype(dtype))
     p_meas, q_meas = _measure(*gt, k_p, k_r, k_drop, *(jnp.asarray(float(x), dtype) for x in (
-        model.sigma_p, model.sigma_r, model.dropout)))
+        model.sigma_p, model.sigma_r, model.dropout, max_gap)))
     times = jax.device_put(np.asarray(sample_t + float(model.latency), dtype))
     return times, unpad_rows(p_meas, m), unpad_rows(q_meas, m)
 
 
 @jit
-def _measure(gt_t, gt_p, gt_q, sample_t, k_p, k_r, k_drop, sigma_p, sigma_r, dropout):
-    """The sensor at the sampling instants ``sample_t``: interpolated ground truth, noise and
-    dropouts (jitted; :func:`simulate_measurements` pads to size classes)."""
+def _measure(gt_t, gt_p, gt_q, sample_t, k_p, k_r, k_drop, sigma_p, sigma_r, dropout, max_gap):
+    """The sensor at the sampling instants ``sample_t``: interpolated ground truth, noise,
+    dropouts and frames lost in ground-truth gaps longer than ``max_gap`` (jitted;
+    :func:`simulate_measurements` pads to size classes)."""
     m, dtype = sample_t.shape[0], gt_p.dtype
-    p_true, q_true = interpolate_poses(gt_t, gt_p, gt_q, sample_t)
+    p_true, q_true = interpolate_poses(gt_t, gt_p, gt_q, sample_t, max_gap=max_gap)
+    # a frame in a gap of either channel the ground truth has is lost as a whole (a sensor
+    # that loses track loses the pose); a channel the ground truth lacks is NaN everywhere
+    has_p = jnp.any(jnp.all(jnp.isfinite(gt_p), axis=-1))
+    has_q = jnp.any(jnp.all(jnp.isfinite(gt_q), axis=-1))
+    in_gap = ((has_p & jnp.any(jnp.isnan(p_true), axis=-1))
+              | (has_q & jnp.any(jnp.isnan(q_true), axis=-1)))
     p_meas = p_true + sigma_p * jax.random.normal(k_p, (m, 3), dtype)
     noise = sigma_r * jax.random.normal(k_r, (m, 3), dtype)
     q_meas = quat_mul(quat_from_rotvec(noise), q_true)
-    lost = jax.random.uniform(k_drop, (m,), dtype) < dropout
+    lost = (jax.random.uniform(k_drop, (m,), dtype) < dropout) | in_gap
     nan = jnp.asarray(jnp.nan, dtype)
     return jnp.where(lost[:, None], nan, p_meas), jnp.where(lost[:, None], nan, q_meas)
 
@@ -174,7 +196,7 @@ def _batch_keys(key_or_seed, batch: tuple[int, ...]) -> list:
                      f"{batch}; got {getattr(k, 'dtype', type(k))} of shape {k.shape}")
 
 
-def _simulate_batch(key_or_seed, gt_times, gt_positions, gt_quaternions, model):
+def _simulate_batch(key_or_seed, gt_times, gt_positions, gt_quaternions, model, max_gt_gap):
     """:func:`simulate_measurements` of each recording of a NaN-padded batch, padded again."""
     from ..batch import pad_recordings
 
@@ -193,7 +215,8 @@ def _simulate_batch(key_or_seed, gt_times, gt_positions, gt_quaternions, model):
         if not keep.any():
             raise ValueError(f"recording {i} of the batch has no ground-truth time")
         outs.append([np.asarray(x, np.float64) for x in simulate_measurements(
-            keys[i], t[i][keep], pn[i][keep].astype(dtype), qn[i][keep].astype(dtype), model)])
+            keys[i], t[i][keep], pn[i][keep].astype(dtype), qn[i][keep].astype(dtype), model,
+            max_gt_gap=max_gt_gap)])
     mt, mp, mq = pad_recordings(*zip(*outs))
     m = mt.shape[-1]
     return (jnp.asarray(mt.reshape(b + (m,)), dtype), jnp.asarray(mp.reshape(b + (m, 3)), dtype),

@@ -93,8 +93,9 @@ def prepare_recordings(
         seconds: keep only the first ``seconds`` of each recording (``None``: all).
         reference_config: Kalman noise of the reference stream used for normalisation (default
             the tuned values :data:`phjax.tracking.baselines.TUNED` ``["kalman"]``).
-        max_gt_gap: render samples inside ground-truth gaps longer than this (s) are ignored
-            (default: :func:`phjax.motion.resample.ground_truth_max_gap`).
+        max_gt_gap: render samples inside ground-truth gaps longer than this (s) are ignored,
+            and the simulated sensor loses its frames there (default:
+            :func:`phjax.motion.resample.ground_truth_max_gap`).
         dtype: floating dtype of the arrays (default: JAX's default float).
 
     Returns:
@@ -125,7 +126,7 @@ def prepare_recordings(
         if seconds is not None:
             keep = t <= seconds
             t, p, q = t[keep], p[keep], q[keep]
-        frames = simulate_measurements(seed + i, t, p, q, sensor)
+        frames = simulate_measurements(seed + i, t, p, q, sensor, max_gt_gap=max_gt_gap)
         mt, mp, mq = (np.asarray(x, np.float64) for x in frames)
         ok = np_any_part(mp, mq)
         if not ok.any():

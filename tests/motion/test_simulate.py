@@ -96,6 +96,49 @@ def test_orientation_only_ground_truth_and_float32():
     assert all(x.dtype == jnp.float32 for x in out)
 
 
+def test_frames_inside_ground_truth_gaps_are_lost_not_made_up():
+    """A frame whose instant lies strictly inside a ground-truth gap longer than ``max_gt_gap``
+    (default: 0.1 s or 2.5 median steps, the evaluation's rule) is lost as a whole; before,
+    the sensor "measured" a straight line across the gap. Frames at the gap's end samples,
+    outside it, and with ``max_gt_gap=inf`` are measured as before."""
+    t, p, q = _smooth_gt()  # 200 Hz for 10 s
+    hole = (t > 3.0 + 1e-9) & (t < 3.5 - 1e-9)  # a 0.5 s gap: samples 3.0 and 3.5 bracket it
+    gap = (t[~hole], p[~hole], q[~hole])
+    tm, pm, qm = map(np.asarray, simulate_measurements(0, *gap, model=NOISELESS))
+    inside = (tm > 3.0 + 1e-9) & (tm < 3.5 - 1e-9)
+    assert inside.sum() == 14  # 3.0 < k / 30 < 3.5
+    assert np.isnan(pm[inside]).all() and np.isnan(qm[inside]).all()
+    assert np.isfinite(pm[~inside]).all() and np.isfinite(qm[~inside]).all()
+    ref = [np.asarray(x) for x in interpolate_poses(*gap, tm[~inside])]
+    np.testing.assert_allclose(pm[~inside], ref[0], atol=1e-12)
+    np.testing.assert_allclose(qm[~inside], ref[1], atol=1e-12)
+    # the gap's length against the limit: bridged when the limit is longer, lost when shorter
+    for limit, lost in ((float("inf"), 0), (0.6, 0), (0.4, 14)):
+        _, pl, ql = map(np.asarray, simulate_measurements(0, *gap, model=NOISELESS,
+                                                          max_gt_gap=limit))
+        assert np.isnan(ql).any(1).sum() == lost and np.isnan(pl).any(1).sum() == lost
+    # orientation-only ground truth: its orientation gap loses the frame
+    _, pl, ql = map(np.asarray, simulate_measurements(
+        0, gap[0], np.full_like(gap[1], np.nan), gap[2], model=NOISELESS))
+    assert np.isnan(pl).all() and np.isnan(ql).any(1).sum() == 14
+    # position-only ground truth: likewise its position gap
+    _, pl, ql = map(np.asarray, simulate_measurements(
+        0, gap[0], gap[1], np.full_like(gap[2], np.nan), model=NOISELESS))
+    assert np.isnan(ql).all() and np.isnan(pl).any(1).sum() == 14
+    # a gap in the positions only (orientation sampled throughout) loses the frame as a whole
+    p_hole = p.copy()
+    p_hole[hole] = np.nan
+    _, pl, ql = map(np.asarray, simulate_measurements(0, t, p_hole, q, model=NOISELESS))
+    assert np.isnan(ql).any(1).sum() == 14 and np.isnan(pl).any(1).sum() == 14
+    # the default rule follows the ground truth's own rate: a 5 Hz trace (steps 0.2 s) keeps
+    # every frame, since 2.5 steps (0.5 s) exceed its steps
+    sparse = tuple(x[::40] for x in (t, p, q))
+    _, pl, _ = map(np.asarray, simulate_measurements(0, *sparse, model=NOISELESS))
+    assert np.isfinite(pl).all()
+    with pytest.raises(ValueError, match="max_gt_gap must be positive"):
+        simulate_measurements(0, t, p, q, max_gt_gap=0.0)
+
+
 @pytest.mark.parametrize(
     "bad", [dict(rate=0.0), dict(dropout=1.0), dict(sigma_p=-1.0), dict(jitter=-0.1)]
 )
