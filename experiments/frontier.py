@@ -75,8 +75,9 @@ RATE, RENDER, WARMUP = 30.0, 120.0, 1.0
 LAGS = np.arange(-0.03, 0.1201, 0.002)
 
 
-#: version of the cached simulated data (2: render times snapped onto coincident frame times)
-DATA_VERSION = 2
+#: version of the cached simulated data (2: render times snapped onto coincident frame times;
+#: 3: frames inside ground-truth gaps are lost)
+DATA_VERSION = 3
 
 
 # --------------------------------------------------------------------------------------- data

@@ -266,7 +266,9 @@ def add_commands(sub) -> None:
                        "as smooth as phjax), the metrics table of phjax and every tuned "
                        "baseline (best causal value per column in bold), and write the frontier "
                        "plot (--plot, default phjax_evaluation.png) and the per-method plot "
-                       "beside it.")
+                       "beside it. Where the ground truth has a gap longer than 0.1 s (or 2.5 "
+                       "of its median steps), the simulated sensor loses its frames and the "
+                       "render samples there are not scored.")
     p.add_argument("ground_truth", help="ground-truth trajectory (TUM .txt, EuRoC/TUM-VI .csv, phjax .csv)")
     add_format_argument(p)
     _sensor_args(p)
