@@ -18,7 +18,8 @@ from .._np_quat import np_qconj as _np_qconj
 from .._np_quat import np_qmul as _np_qmul
 from .._sizes import MIN_RENDER, pad_samples, size_class, unpad_rows
 from ..quaternion import quat_from_rotvec, quat_mul
-from .resample import ground_truth_max_gap, interpolate_poses
+from .resample import (ground_truth_max_gap, interpolate_poses, valid_quaternion_rows,
+                       valid_rows)
 
 __all__ = ["SensorModel", "simulate_measurements", "synthetic_head_motion"]
 
@@ -167,8 +168,9 @@ def _measure(gt_t, gt_p, gt_q, sample_t, k_p, k_r, k_drop, sigma_p, sigma_r, dro
     p_true, q_true = interpolate_poses(gt_t, gt_p, gt_q, sample_t, max_gap=max_gap)
     # a frame in a gap of either channel the ground truth has is lost as a whole (a sensor
     # that loses track loses the pose); a channel the ground truth lacks is NaN everywhere
-    has_p = jnp.any(jnp.all(jnp.isfinite(gt_p), axis=-1))
-    has_q = jnp.any(jnp.all(jnp.isfinite(gt_q), axis=-1))
+    # (a channel counts where interpolate_poses finds a valid sample: zero quaternions do not)
+    has_p = jnp.any(valid_rows(gt_p))
+    has_q = jnp.any(valid_quaternion_rows(gt_q))
     in_gap = ((has_p & jnp.any(jnp.isnan(p_true), axis=-1))
               | (has_q & jnp.any(jnp.isnan(q_true), axis=-1)))
     p_meas = p_true + sigma_p * jax.random.normal(k_p, (m, 3), dtype)

@@ -121,10 +121,12 @@ def test_frames_inside_ground_truth_gaps_are_lost_not_made_up():
     _, pl, ql = map(np.asarray, simulate_measurements(
         0, gap[0], np.full_like(gap[1], np.nan), gap[2], model=NOISELESS))
     assert np.isnan(pl).all() and np.isnan(ql).any(1).sum() == 14
-    # position-only ground truth: likewise its position gap
-    _, pl, ql = map(np.asarray, simulate_measurements(
-        0, gap[0], gap[1], np.full_like(gap[2], np.nan), model=NOISELESS))
-    assert np.isnan(ql).all() and np.isnan(pl).any(1).sum() == 14
+    # position-only ground truth (NaN or zero quaternions, as the tracker accepts it):
+    # likewise its position gap, and no other frame
+    for none in (np.full_like(gap[2], np.nan), np.zeros_like(gap[2])):
+        _, pl, ql = map(np.asarray, simulate_measurements(0, gap[0], gap[1], none,
+                                                          model=NOISELESS))
+        assert np.isnan(ql).all() and np.isnan(pl).any(1).sum() == 14
     # a gap in the positions only (orientation sampled throughout) loses the frame as a whole
     p_hole = p.copy()
     p_hole[hole] = np.nan
