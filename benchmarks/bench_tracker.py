@@ -4,8 +4,10 @@
 
 Tables:
 1. Streaming latency (jitted, CPU, float32, after warm-up; median and p99 over ``--repeats``
-   calls) of one camera update and one render sample, with the default config (IMM filter)
-   and the single-model config (``TrackerConfig(imm=None)``): the real-time driver
+   calls) of one camera update and one render sample, with the default config (IMM filter),
+   the single-model config (``TrackerConfig(imm=None)``) and the config of ``phjax live``
+   (``phjax.live.live_tracker_config()``: single model, innovation gate, the online noise
+   floor ``noise_window=60``): the real-time driver
    ``TrackerStream.update`` / ``.sample`` and the pure jitted ``tracker_update`` (config
    converted once with ``tracker_config_arrays``) / ``tracker_sample``, each with JAX's default
    asynchronous dispatch and with ``jax_cpu_enable_async_dispatch=False`` (computations in the
@@ -99,8 +101,12 @@ def _latency_rows(repeats):
     x0 = jnp.zeros((), jnp.float32)
     rows = [("-", "jit dispatch floor", "-",
              *_stats_us(lambda: jax.block_until_ready(floor(x0)), repeats))]
+    from phjax.live import live_tracker_config
+
+    live = live_tracker_config()  # what phjax live runs: single model, gate, noise floor
     for name, cfg in (("default (IMM)", pj.TrackerConfig()),
-                      ("single model (imm=None)", pj.TrackerConfig(imm=None))):
+                      ("single model (imm=None)", pj.TrackerConfig(imm=None)),
+                      (f"live (single model, noise_window={live.noise_window})", live)):
         rows += _config_rows(name, cfg, p, q, t_dev, repeats)
     return rows
 

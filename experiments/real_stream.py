@@ -84,12 +84,14 @@ def load():
 
 
 def configs(t, p, q) -> dict[str, TrackerConfig]:
-    """The default IMM / single-model configs and the same with data-estimated noise."""
+    """The default IMM / single-model configs, the same with data-estimated noise, and the IMM
+    with the online noise floor (``TrackerConfig.noise_window``)."""
     noise = estimate_measurement_noise(t, p, q)
     out = {}
     for name, base in (("imm", TrackerConfig(imm=IMMConfig())), ("kalman", TrackerConfig(imm=None))):
         out[f"{name}, default noise"] = base
         out[f"{name}, estimated noise"] = with_measurement_noise(base, noise)
+    out["imm, online noise floor 60"] = TrackerConfig(imm=IMMConfig(), noise_window=60)
     return out
 
 
@@ -189,6 +191,8 @@ def evaluate(ml: bool = False) -> dict[str, dict]:
         out[f"causal stream ({name}), at the frames"] = ape_stats(gt, t, pc, qc)
         pr, qr = (np.asarray(x) for x in track(t, p, q, r120, config=cfg))
         out[f"causal stream ({name}), 120 Hz"] = ape_stats(gt, r120, pr, qr)
+        if cfg.noise_window:  # the floor is the stream's (the filter alone has none)
+            continue
         if cfg.imm is not None:  # the IMM filter alone: its posterior at the frames
             pf, qf = (np.asarray(x) for x in imm_extrapolation(t, p, q, t, config=cfg.imm))
             out[f"causal IMM filter without the stream ({name}), at the frames"] = ape_stats(

@@ -38,6 +38,9 @@ import common as C  # noqa: E402
 from phjax.motion.simulate import SensorModel  # noqa: E402
 
 REFERENCE = "kalman-cv extrapolation"
+#: the default tracker with the online measurement-noise floor (``TrackerConfig.noise_window``),
+#: selectable with ``--methods``
+NOISE_FLOOR = "phjax (causal + noise floor 60)"
 METRICS = {
     "position_rmse": "position RMSE",
     "rotation_rmse_deg": "rotation RMSE",
@@ -97,7 +100,9 @@ def parse_args(argv=None):
     ap.add_argument("--out", default=None, help="output folder (default results/sensitivity[_quick])")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--methods", default="phjax (causal)",
-                    help="comma-separated methods compared with the Kalman CV reference")
+                    help="comma-separated methods compared with the Kalman CV reference "
+                    f"(those of common.study_methods, and {NOISE_FLOOR!r}: the default tracker "
+                    "with TrackerConfig(noise_window=60))")
     ap.add_argument("--n-boot", type=int, default=2000)
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--from-csv", default=None, metavar="DIR",
@@ -111,12 +116,26 @@ def parse_args(argv=None):
     return args
 
 
+def study_methods(names):
+    """``common.study_methods`` plus :data:`NOISE_FLOOR`."""
+    from phjax.evaluation.report import Method
+    from phjax.tracking import TrackerConfig, track
+
+    def floor(t, p, q, r):
+        return track(t, p, q, r, config=TrackerConfig(noise_window=60))
+
+    known = [n for n in names if n != NOISE_FLOOR]
+    by_name = {m.name: m for m in C.study_methods(known)}
+    by_name[NOISE_FLOOR] = Method(NOISE_FLOOR, floor, True, False)
+    return [by_name[n] for n in names]
+
+
 def run_study(args):
     t_start = time.perf_counter()
     protocol = C.Protocol()
     shapes = C.Shapes.for_protocol(protocol)
     names = [s.strip() for s in args.methods.split(",") if s.strip()]
-    methods = C.study_methods([n for n in names if n != REFERENCE] + [REFERENCE])
+    methods = study_methods([n for n in names if n != REFERENCE] + [REFERENCE])
     recs = C.load_recordings()
     windows = C.draw_windows(recs, args.windows, args.seed + 1, protocol)
     conds = conditions()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import gc
 import math
 import signal
@@ -9,11 +11,13 @@ import sys
 import threading
 
 from .._face_sizes import HEAD_SIZE_RANGE, IPD_RANGE
+from .._live_defaults import LIVE_NOISE_WINDOW
 from ._common import (
     add_format_argument,
     check_lookahead,
     file_name,
     float_between,
+    nonnegative_int,
     positive_float,
     replaced_note,
 )
@@ -52,6 +56,14 @@ def _abandon(lt, source) -> None:
             source.close()
     except Exception:  # noqa: BLE001 - best effort on the way out; the first error is reported
         pass
+
+
+def noise_window(text: str) -> int:
+    """argparse type of ``--noise-window``: 0 (off) or an integer >= 8."""
+    n = nonnegative_int(text)
+    if 0 < n < 8:
+        raise argparse.ArgumentTypeError(f"must be 0 (off) or an integer >= 8, got {text!r}")
+    return n
 
 
 def cmd_live(args) -> int:
@@ -108,7 +120,6 @@ def cmd_live(args) -> int:
                       flush=True)
 
     try:
-        import equinox as eqx
         import jax
 
         jax.config.update("jax_enable_x64", True)
@@ -122,8 +133,8 @@ def cmd_live(args) -> int:
         if isinstance(source, UdpSource):
             source.report = report  # from the capture thread
             source.open()  # a port in use fails now, not after the tracker's compilation
-        config = eqx.tree_at(lambda c: c.lookahead, live_tracker_config(source.depth_free),
-                             ms / 1e3)
+        config = dataclasses.replace(live_tracker_config(source.depth_free),
+                                     lookahead=ms / 1e3, noise_window=args.noise_window)
         replaced = replaced_note(args.log) if args.log else ""  # before the log is opened
         lt = LiveTracker(source, args.output or [], rate=args.rate, duration=args.duration,
                          log=args.log, center=args.center, realtime=args.realtime,
@@ -235,6 +246,12 @@ def add_commands(sub) -> None:
                    "motion-to-photon latency minus what the receiving program already predicts "
                    "(a VR runtime that predicts to its own display time: 0; a game that draws "
                    "the pose as received: its latency, typically 20-50)")
+    p.add_argument("--noise-window", type=noise_window, default=LIVE_NOISE_WINDOW, metavar="N",
+                   help="online measurement-noise floor: the filter's measurement noise is "
+                   "raised to the white noise measured over the last N frames when that is "
+                   f"larger (default {LIVE_NOISE_WINDOW}, 2 s at 30 FPS; 0: off, the configured "
+                   "noise only; else at least 8). A source noisier than assumed (a webcam, "
+                   "another tracker) is then smoothed as much as its noise needs")
     p.add_argument("--center", action="store_true",
                    help="the first pose becomes the origin (SIGUSR1 re-centres at any time)")
     p.add_argument("--monocular", choices=("net", "landmarks"), default="net",

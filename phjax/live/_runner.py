@@ -76,6 +76,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._live_defaults import LIVE_NOISE_WINDOW
 from .._np_quat import np_qconj, np_qmul
 from ..tracking.kalman import KalmanConfig
 from ..tracking.stream import TrackerStream, _wait_optimised
@@ -172,13 +173,15 @@ def live_tracker_config(depth_free: bool = False, base: TrackerConfig | None = N
     ``base`` (default: :class:`TrackerConfig` with the single-model Kalman filter
     (``imm=None``) and its innovation gate :data:`LIVE_GATE_NIS`, so that a gross front-end
     error, e.g. a misaligned frame, is rejected instead of swinging the view; the IMM filter
-    has no gate yet), with the monocular measurement noise
+    has no gate yet; and the online noise floor, ``noise_window`` :data:`LIVE_NOISE_WINDOW`),
+    with the monocular measurement noise
     (:data:`phjax.vision.monocular.MONOCULAR_NOISE`) when the poses come from colour alone.
     A given ``base`` keeps its own filter and gate (the monocular noise applies to the
     single-model filter).
     """
     if base is None:
-        base = TrackerConfig(kalman=KalmanConfig(gate_nis=LIVE_GATE_NIS), imm=None)
+        base = TrackerConfig(kalman=KalmanConfig(gate_nis=LIVE_GATE_NIS), imm=None,
+                             noise_window=LIVE_NOISE_WINDOW)
     if not depth_free:
         return base
     from ..vision.monocular import MONOCULAR_NOISE

@@ -22,10 +22,15 @@ What it measures is the *white* (sample-to-sample independent) part of the noise
 varying errors (SLAM drift) are removed by the difference like the motion, so they are not
 counted; errors correlated over a few frames are counted only in part. For such a source the
 estimate is a lower bound of a good ``pos_meas_noise``: on RGBDSLAM's estimate the default 5 mm
-gives a lower APE than the estimated 1.46 mm (``docs/realstream.md``).
+gives a lower APE than the estimated 1.46 mm (``docs/frontier.md``, "Real SLAM stream").
 Remaining motion adds the unit-norm ``k``-th difference of the trajectory, on a uniform grid
 ``x^(k) dt^k / ||Delta^k||`` (for ``k = 3``: ``x''' dt^3 / sqrt(20)``), negligible for head or
 hand-held camera motion at 30 Hz (a jerk of 10 m/s^3 gives 0.08 mm).
+
+The causal stream can also measure the noise as it runs: ``TrackerConfig(noise_window=n)``
+computes the same residuals frame by frame (:mod:`phjax.tracking._noise_core`, shared with
+this module) and raises the filters' measurement noise to their running winsorised RMS when it
+exceeds the configured value (a floor, never lower: see the caveat above).
 
 Measured (``experiments/real_stream.py``, ``tests/tracking/test_noise.py``): on the default
 simulated sensor it returns 5.06-5.29 mm / 0.91-1.01 deg (4 seeds), and the stream with it is
@@ -44,13 +49,10 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._jit import jit
-from ..quaternion import quat_conj, quat_mul, quat_to_rotvec
+from ._noise_core import robust_std, window_residuals
 from .tracker import TrackerConfig
 
 __all__ = ["MeasurementNoise", "estimate_measurement_noise", "with_measurement_noise"]
-
-_MAD_TO_STD = 1.482602218505602  # 1 / Phi^-1(3/4): MAD of N(0, 1)
-
 
 class MeasurementNoise(eqx.Module):
     """Per-channel white measurement noise of a pose recording.
@@ -76,13 +78,6 @@ class MeasurementNoise(eqx.Module):
     def rot_meas_noise(self) -> Float[Array, ""]:
         """Isotropic orientation std (RMS over the axes), rad: the filters' ``rot_meas_noise``."""
         return jnp.sqrt(jnp.mean(self.rot_std**2))
-
-
-def _robust_std(res: Float[Array, "w c"], ok: Float[Array, " w"]) -> Float[Array, " c"]:
-    """Gaussian-consistent MAD per column over the rows where ``ok`` (NaN if none)."""
-    r = jnp.where(ok[:, None], res, jnp.nan)
-    med = jnp.nanmedian(r, axis=0)
-    return _MAD_TO_STD * jnp.nanmedian(jnp.abs(r - med), axis=0)
 
 
 def estimate_measurement_noise(
@@ -131,30 +126,12 @@ def estimate_measurement_noise(
 
 @functools.partial(jit, static_argnums=3)
 def _estimate(t, p, q, k: int) -> MeasurementNoise:
-    n, dtype = t.shape[0], t.dtype
+    n = t.shape[0]
     idx = jnp.arange(n - k)[:, None] + jnp.arange(k + 1)[None, :]  # (w, k+1)
-    tw = t[idx] - t[idx[:, :1]]  # window-relative times (the weights use differences only)
-    t_ok = jnp.all(jnp.isfinite(tw), axis=1) & jnp.all(jnp.diff(tw, axis=1) > 0, axis=1)
-    tw = jnp.where(t_ok[:, None], tw, jnp.arange(k + 1, dtype=dtype))  # safe dummy spacing
-    diff = tw[:, :, None] - tw[:, None, :]
-    eye = jnp.eye(k + 1, dtype=bool)
-    c = 1.0 / jnp.prod(jnp.where(eye, 1.0, diff), axis=-1)  # divided-difference weights
-    c = c / jnp.linalg.norm(c, axis=1, keepdims=True)
-
-    pw = p[idx]  # (w, k+1, 3)
-    p_ok = t_ok & jnp.all(jnp.isfinite(pw), axis=(1, 2))
-    res_p = jnp.einsum("wj,wjc->wc", c, jnp.where(p_ok[:, None, None], pw, 0))
-
-    qw = q[idx]  # (w, k+1, 4)
-    q_ok = t_ok & jnp.all(jnp.isfinite(qw), axis=(1, 2))
-    qw = jnp.where(q_ok[:, None, None], qw, jnp.array([1, 0, 0, 0], dtype))
-    qw = qw / jnp.linalg.norm(qw, axis=-1, keepdims=True)
-    rv = quat_to_rotvec(quat_mul(qw, quat_conj(qw[:, 1:2, :])))  # world-frame, (w, k+1, 3)
-    res_r = jnp.einsum("wj,wjc->wc", c, rv)
-
+    res_p, p_ok, res_r, q_ok = window_residuals(t[idx], p[idx], q[idx])
     return MeasurementNoise(
-        pos_std=_robust_std(res_p, p_ok),
-        rot_std=_robust_std(res_r, q_ok),
+        pos_std=robust_std(res_p, p_ok),
+        rot_std=robust_std(res_r, q_ok),
         pos_windows=jnp.sum(p_ok),
         rot_windows=jnp.sum(q_ok),
     )

@@ -147,6 +147,7 @@ class TrackerStream:
         self._state_def = jax.tree.structure(state)
         self._segment_def = jax.tree.structure(state.segment)
         self._n_filter = len(jax.tree.leaves(state.filter))  # the segment's leaves follow
+        self._n_segment = len(jax.tree.leaves(state.segment))
         self._seen = [False, False]  # position, orientation measured
         self._partial = 0  # measurements with one part only, while the other is unseen
         self.set_config(config)
@@ -199,8 +200,8 @@ class TrackerStream:
         if hasattr(self, "_leaves") and jax.tree.structure(
                 tracker_init(config, 0.0, self.dtype)) != self._state_def:
             raise ValueError("set_config: this config's filter state has another structure "
-                             "than the stream's (IMM or not, model count or order); start a "
-                             "new TrackerStream for it")
+                             "than the stream's (IMM or not, model count or order, "
+                             "noise_window on or off); start a new TrackerStream for it")
         leaves, self._config_def = jax.tree.flatten(tracker_config_arrays(config, self.dtype))
         self._update = self._program(_update)
         self._config_leaves = leaves
@@ -277,4 +278,5 @@ class TrackerStream:
         """
         if not isinstance(t_render, jax.Array):
             t_render = (np.asarray(t_render, np.float64) - (self.origin or 0.0)).astype(self.dtype)
-        return _sample_on_leaves(self._segment_def)(self._leaves[self._n_filter:], t_render)
+        segment = self._leaves[self._n_filter:self._n_filter + self._n_segment]
+        return _sample_on_leaves(self._segment_def)(segment, t_render)

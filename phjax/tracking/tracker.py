@@ -44,6 +44,7 @@ valid pose there.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import equinox as eqx
@@ -59,6 +60,7 @@ from ..io import TrajectoryWarning
 from .._sizes import unpad_rows
 from . import _exported
 from ._batch import run_batch
+from ._noise_core import NoiseMonitor, noise_monitor_init, noise_monitor_push, noise_monitor_std
 from ._shapes import bounded_cache, pad_recording
 from .imm import IMMConfig, imm_init, imm_predict_pose, imm_step, imm_uninitialized
 from .kalman import (
@@ -128,6 +130,21 @@ class TrackerConfig(eqx.Module):
             each segment starts at the pose rendered at the camera frame and settles on the
             filter's prediction for ``t_k + lookahead + horizon``, so the stream stays C1 and
             coasts and stops as before. Differentiable like the other fields.
+        noise_window: online measurement-noise floor (static; default 0: off). With ``n > 0``
+            the causal stream measures the white noise of the measurements as it goes: the
+            residuals of :func:`phjax.tracking.estimate_measurement_noise` (third divided
+            differences of four consecutive frames), their mean square over about the last
+            ``n`` (a running mean, then an exponential one), each clipped at three estimated
+            stds so that a misaligned frame or a burst of motion moves it little. Each filter
+            step uses the larger of that estimate and the configured ``pos_meas_noise`` /
+            ``rot_meas_noise`` (once ``max(8, n // 4)`` residuals have been seen; the state
+            depends on it: :func:`tracker_init` with this config). For sources whose noise is unknown
+            (a webcam, another tracker): with a sensor noisier than configured the IMM takes
+            the noise for manoeuvres and follows it (``experiments/sensitivity.py``). A
+            floor, not a replacement: the estimate counts only the white part of the noise
+            (a SLAM estimate's correlated error is not), so a configured value is never
+            lowered; set it lower yourself for a precise sensor. 60 (2 s at 30 Hz) is a good
+            value.
     """
 
     kalman: KalmanConfig = eqx.field(default_factory=KalmanConfig)
@@ -137,6 +154,7 @@ class TrackerConfig(eqx.Module):
     coast_time: float = 0.1
     stop_time: float = 0.05
     lookahead: float = 0.0
+    noise_window: int = eqx.field(default=0, static=True)
 
     def __check_init__(self):
         # concrete values only (a traced config, e.g. inside jax.grad, is the caller's to keep
@@ -144,6 +162,15 @@ class TrackerConfig(eqx.Module):
         check_number_fields(self, (("horizon", *POSITIVE), ("stop_time", *POSITIVE),
                                    ("coast_time", lambda x: x >= 0, " >= 0"),
                                    ("adapt", *FINITE), ("lookahead", *FINITE)))
+        if (not isinstance(self.noise_window, (int, np.integer)) or isinstance(
+                self.noise_window, bool) or not (self.noise_window == 0 or self.noise_window >= 8)):
+            raise ValueError("TrackerConfig.noise_window must be an integer, 0 (off) or >= 8 "
+                             f"(residual windows), got {self.noise_window!r}")
+
+
+def _noise_min_count(config: TrackerConfig) -> int:
+    """Residual windows the online noise floor needs before it is used."""
+    return max(8, config.noise_window // 4)
 
 
 #: The correction ``c(t)`` = rendered minus predicted pose decays like a critically damped
@@ -257,6 +284,7 @@ class TrackerState(eqx.Module):
     Fields:
         filter: the Kalman (or IMM) filter state.
         segment: the render segment (:class:`RenderSegment`): all a render sample reads.
+        noise: the online noise estimate (``TrackerConfig.noise_window > 0``), else ``None``.
 
     Properties (views): ``t0``, the render time of the last segment start (the last camera
     frame used), s; ``started``, whether a valid measurement has been seen (before that samples are
@@ -268,6 +296,7 @@ class TrackerState(eqx.Module):
 
     filter: KalmanState
     segment: RenderSegment
+    noise: NoiseMonitor | None = None
 
     @property
     def t0(self) -> Float[Array, ""]:
@@ -290,7 +319,7 @@ class TrackerState(eqx.Module):
         return self.segment.rotation
 
 
-def _make_state(config, kf, t0, duration, curve, rotation, started, ends) -> TrackerState:
+def _make_state(config, kf, t0, duration, curve, rotation, started, ends, noise) -> TrackerState:
     """A :class:`TrackerState` whose segment starts at ``t0`` with two pieces.
 
     ``ends = (p_end, v_end, q_end, w_end)``: the end pose and velocities of the second piece,
@@ -304,7 +333,7 @@ def _make_state(config, kf, t0, duration, curve, rotation, started, ends) -> Tra
         coast_time=jnp.asarray(config.coast_time, dtype),
         stop_time=jnp.asarray(config.stop_time, dtype),
         lookahead=jnp.asarray(config.lookahead, dtype))
-    return TrackerState(kf, segment)
+    return TrackerState(kf, segment, noise)
 
 
 def _segment(p0, v0, q0, w0, p1, v1, q1, w1, duration):
@@ -359,8 +388,9 @@ def _init(config: TrackerConfig, t) -> TrackerState:
     dur = jnp.full((2,), 0.5, dtype)
     curve = PHQuintic(A0=z4, A1=z4, A2=z4, control_points=jnp.zeros((2, 6, 3), dtype))
     rot = QuaternionHermite(q0=q, w1=z3, w2=z3, w3=z3, duration=dur)
+    noise = noise_monitor_init(dtype) if config.noise_window else None
     return _make_state(config, kf, t, dur, curve, rot, jnp.asarray(False),
-                       (z3[0], z3[0], q[0], z3[0]))
+                       (z3[0], z3[0], q[0], z3[0]), noise)
 
 
 def tracker_config_arrays(config: TrackerConfig | None = None, dtype=None) -> TrackerConfig:
@@ -421,6 +451,19 @@ def _filter_restart_part(config: TrackerConfig, state, part: int, position, quat
     return eqx.tree_at(lambda s: [getattr(s, n) for n in names], state, new)
 
 
+def _noise_floor(config: TrackerConfig, noise: NoiseMonitor) -> TrackerConfig:
+    """``config`` whose filter (the one the stream runs) has measurement noise no lower than
+    the monitor's estimate."""
+    pos, rot = noise_monitor_std(noise, _noise_min_count(config))
+    filt = config.kalman if config.imm is None else config.imm
+    filt = dataclasses.replace(
+        filt, pos_meas_noise=jnp.maximum(jnp.asarray(filt.pos_meas_noise, pos.dtype), pos),
+        rot_meas_noise=jnp.maximum(jnp.asarray(filt.rot_meas_noise, rot.dtype), rot))
+    if config.imm is None:
+        return dataclasses.replace(config, kalman=filt)
+    return dataclasses.replace(config, imm=filt)
+
+
 def _filter_step(config: TrackerConfig, state, t, position, quaternion):
     if config.imm is None:
         return kalman_step(config.kalman, state, t, position, quaternion)
@@ -477,7 +520,19 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion,
     else:
         t_render = t
     p_r, v_r, q_r, w_r = state.segment.evaluate(t_render)  # the pose shown at t_render
-    kf, info = _filter_step(config, state.filter, t, position, quaternion)
+    noise = state.noise
+    if (noise is None) != (config.noise_window == 0):
+        raise ValueError(
+            f"tracker update: the state was made for another TrackerConfig.noise_window (the "
+            f"config has {config.noise_window}, the state {'no' if noise is None else 'a'} "
+            "noise monitor); start it with tracker_init(config)")
+    if noise is not None:  # the online noise floor (TrackerConfig.noise_window)
+        filt = config.kalman if config.imm is None else config.imm
+        noise = noise_monitor_push(noise, config.noise_window, t, position, quaternion,
+                                   filt.pos_meas_noise, filt.rot_meas_noise)
+        kf, info = _filter_step(_noise_floor(config, noise), state.filter, t, position, quaternion)
+    else:
+        kf, info = _filter_step(config, state.filter, t, position, quaternion)
     u = t_render + jnp.asarray(config.lookahead, dtype)  # the display time of that pose
     used = info.pos_used | info.rot_used
     h = jnp.asarray(config.horizon, dtype) * _adaptive_factor(config, kf, dtype)
@@ -510,8 +565,8 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion,
     q_end = _rotation_end(q_m, q_T, w_m, w_T, h - t1)
     rebuild = used & kf.initialized
     new = _make_state(config, kf, u, dur, curve, rot, state.started | kf.initialized,
-                      (p_T, v_T, q_end, w_T))
-    keep = eqx.tree_at(lambda x: x.filter, state, kf)
+                      (p_T, v_T, q_end, w_T), noise)
+    keep = dataclasses.replace(state, filter=kf, noise=noise)
     return jax.tree.map(lambda a, b: jnp.where(rebuild, a, b), new, keep)
 
 
