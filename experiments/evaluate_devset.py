@@ -6,7 +6,9 @@ Each sequence of ``experiments/devset.py`` is sampled by the default sensor mode
 1 deg, 5 % dropouts, seed 0) and rendered at 120 Hz by every method of
 :func:`phjax.evaluation.default_methods` (baselines with their tuned parameters). Writes
 ``per_sequence.csv`` and ``summary.md`` (per-sequence tables, and the mean over sequences of each
-metric relative to the tuned Kalman CV extrapolation) into ``--out``.
+metric relative to the tuned Kalman CV extrapolation) into ``--out``. ``--variants`` adds the
+causal stream with the two non-default options of :class:`phjax.TrackerConfig`,
+``reacquire=True`` and ``noise_window=60``.
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from devset import load_devset  # noqa: E402
 
 from phjax.evaluation import evaluate_recording, format_table  # noqa: E402
+from phjax.evaluation.report import Method, default_methods  # noqa: E402
+from phjax.tracking import TrackerConfig, track  # noqa: E402
 
 KEYS = ["position_rmse", "rotation_rmse_deg", "jerk_position", "jerk_rotation", "curvature",
         "torsion", "velocity_jump", "angular_velocity_jump", "latency_position", "latency_rotation"]
@@ -35,7 +39,16 @@ def main(argv=None):
     ap.add_argument("--seconds", type=float, default=30.0, help="length of each sequence used")
     ap.add_argument("--out", default="results/devset")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--variants", action="store_true",
+                    help="also the causal stream with TrackerConfig(reacquire=True) and with "
+                    "TrackerConfig(noise_window=60)")
     args = ap.parse_args(argv)
+    methods = default_methods()
+    if args.variants:
+        for name, cfg in (("phjax (causal, reacquire)", TrackerConfig(reacquire=True)),
+                          ("phjax (causal + noise floor 60)", TrackerConfig(noise_window=60))):
+            methods.insert(1, Method(name, lambda t, p, q, r, c=cfg: track(t, p, q, r, config=c),
+                                     True, False))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     with warnings.catch_warnings():
@@ -46,7 +59,7 @@ def main(argv=None):
     rows, md = [], ["# Development-set evaluation", ""]
     ratios: dict[str, dict[str, list]] = {}
     for name, kind, t, p, q in tqdm(seqs, desc="sequences"):
-        res = evaluate_recording(t, p, q, seed=args.seed)
+        res = evaluate_recording(t, p, q, seed=args.seed, methods=methods)
         md += [f"## {name} ({kind})", "", format_table(res.metrics, res.causal), ""]
         ref = res.metrics["kalman-cv extrapolation"]
         for method, m in res.metrics.items():

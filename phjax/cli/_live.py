@@ -134,7 +134,8 @@ def cmd_live(args) -> int:
             source.report = report  # from the capture thread
             source.open()  # a port in use fails now, not after the tracker's compilation
         config = dataclasses.replace(live_tracker_config(source.depth_free),
-                                     lookahead=ms / 1e3, noise_window=args.noise_window)
+                                     lookahead=ms / 1e3, noise_window=args.noise_window,
+                                     reacquire=args.reacquire)
         replaced = replaced_note(args.log) if args.log else ""  # before the log is opened
         lt = LiveTracker(source, args.output or [], rate=args.rate, duration=args.duration,
                          log=args.log, center=args.center, realtime=args.realtime,
@@ -252,6 +253,11 @@ def add_commands(sub) -> None:
                    f"larger (default {LIVE_NOISE_WINDOW}, 2 s at 30 FPS; 0: off, the configured "
                    "noise only; else at least 8). A source noisier than assumed (a webcam, "
                    "another tracker) is then smoothed as much as its noise needs")
+    p.add_argument("--reacquire", action="store_true",
+                   help="after a loss long enough for the stream to come to rest (coast time "
+                   "+ stop time, 0.15 s by default, past its last segment), jump to the "
+                   "re-acquired pose at once instead of gliding there within one horizon "
+                   "(~30 ms) from where it stopped")
     p.add_argument("--center", action="store_true",
                    help="the first pose becomes the origin (SIGUSR1 re-centres at any time)")
     p.add_argument("--monocular", choices=("net", "landmarks"), default="net",

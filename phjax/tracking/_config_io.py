@@ -114,9 +114,11 @@ def config_from_dict(d: dict, source: str = "<dict>") -> TrackerConfig:
         unknown = set(sec) - set(known)
         if unknown:
             raise ValueError(f"{source}: unknown {key} field(s) {sorted(unknown)}; known: {known}")
+        flags = {f.name for f in dataclasses.fields(cls) if isinstance(f.default, bool)}
         for name, value in sec.items():
             scalar = value is None or isinstance(value, (int, float, str))
-            if isinstance(value, bool) or not scalar:
+            # true / false only for the switches (a number field given true is a mistake)
+            if isinstance(value, bool) != (name in flags) or not scalar:
                 raise ValueError(f"{source}: {key}.{name} has an invalid value {value!r}")
         sections[key] = sec
     try:

@@ -145,6 +145,16 @@ class TrackerConfig(eqx.Module):
             (a SLAM estimate's correlated error is not), so a configured value is never
             lowered; set it lower yourself for a precise sensor. 60 (2 s at 30 Hz) is a good
             value.
+        reacquire: re-acquisition after a long loss (static; default ``False``). With
+            ``True`` the first frame after the stream has stopped (more than ``coast_time +
+            stop_time`` past its segment's end, the gap :func:`reconstruct` bridges as a
+            loss) starts the stream again at the filter's estimate at rest, as the first
+            frame does: one jump to the re-acquired pose. By default the stream glides there
+            from where it came to rest within one horizon (C1, no jump): after a 0.97 s loss
+            of a walking head (TUM VI room2) that glide has 874, 526 and 152 mm of error in
+            its first three 120 Hz samples, which doubles the recording's RMSE; in a 3 s face
+            loss of the live test the jump is 5.6 cm where the glide moves at most 0.43 cm
+            per sample. A choice between accuracy and continuity.
     """
 
     kalman: KalmanConfig = eqx.field(default_factory=KalmanConfig)
@@ -155,6 +165,7 @@ class TrackerConfig(eqx.Module):
     stop_time: float = 0.05
     lookahead: float = 0.0
     noise_window: int = eqx.field(default=0, static=True)
+    reacquire: bool = eqx.field(default=False, static=True)
 
     def __check_init__(self):
         # concrete values only (a traced config, e.g. inside jax.grad, is the caller's to keep
@@ -166,6 +177,9 @@ class TrackerConfig(eqx.Module):
                 self.noise_window, bool) or not (self.noise_window == 0 or self.noise_window >= 8)):
             raise ValueError("TrackerConfig.noise_window must be an integer, 0 (off) or >= 8 "
                              f"(residual windows), got {self.noise_window!r}")
+        if not isinstance(self.reacquire, (bool, np.bool_)):
+            raise ValueError(f"TrackerConfig.reacquire must be True or False, got "
+                             f"{self.reacquire!r}")
 
 
 def _noise_min_count(config: TrackerConfig) -> int:
@@ -541,9 +555,13 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion,
     # the filter's prediction for the display time u (its mean when the lookahead is 0)
     pred = jax.vmap(lambda tau: _filter_predict(config, kf, tau))(jnp.stack([u, u + t1, u + h]))
     (p_k, p_1, p_T), (q_k, q_1, q_T), (v_k, v_1, v_T), (w_k, w_1, w_T) = pred
-    # first frame: start at the filter's estimate at rest
+    # first frame (and, with config.reacquire, the first after the stream has stopped): start
+    # at the filter's estimate at rest
     z = jnp.zeros(3, dtype)
     fresh = ~was_init
+    if config.reacquire:
+        rest = jnp.asarray(config.coast_time, dtype) + jnp.asarray(config.stop_time, dtype)
+        fresh = fresh | (u - state.segment.end > rest)
     p_r = jnp.where(fresh, p_k, p_r)
     v_r = jnp.where(fresh, z, v_r)
     q_r = jnp.where(fresh, q_k, q_r)

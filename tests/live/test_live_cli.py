@@ -319,3 +319,25 @@ def test_a_replaced_log_is_named_as_replaced(tmp_path, capsys):
     assert main(argv) == 0
     assert f", log {log} (replaced the existing file)" in capsys.readouterr().err
     assert read_tum(log).num_samples > 0
+
+
+def test_reacquire_and_noise_window_options(tmp_path, capsys):
+    """A pose file with a 1 s gap across which the head moved 0.3 m: by default the sent
+    stream glides to the new pose over a few samples (largest step measured 0.115 m); with
+    --reacquire it jumps there in one sample (0.300 m; TrackerConfig.reacquire).
+    --noise-window 0 turns the floor off (a valid value)."""
+    t = np.concatenate([np.arange(30) / 30, 2.0 + np.arange(15) / 30])
+    p = np.zeros((len(t), 3))
+    p[t >= 2.0, 0] = 0.3
+    src = tmp_path / "gap.txt"
+    write_tum(src, Trajectory(t, p, np.tile([1.0, 0, 0, 0], (len(t), 1))))
+    steps = {}
+    for flags in ((), ("--reacquire", "--noise-window", "0")):
+        log = tmp_path / f"sent{len(flags)}.tum"
+        assert main(["live", f"poses:{src}", "--quiet", "--log", str(log), *flags]) == 0, (
+            capsys.readouterr().err)
+        sent = read_tum(log).positions
+        assert np.isfinite(sent).all() and abs(sent[-1, 0] - 0.3) < 0.01
+        steps[flags] = np.abs(np.diff(sent[:, 0])).max()
+    assert steps[("--reacquire", "--noise-window", "0")] > 0.25, steps  # one jump
+    assert steps[()] < 0.2, steps  # a glide over several samples
