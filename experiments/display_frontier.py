@@ -51,6 +51,7 @@ Outputs in ``--out``: ``display_frontier.md`` (tables), ``display_frontier.csv``
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import csv
 import json
 import math
@@ -238,7 +239,7 @@ def measure(data, L: float, train: list[int], log=print, small: bool = False) ->
     base = TrackerConfig(kalman=kf_cfg, imm=tuned_imm(*tuned[IMM]), lookahead=L)
     horizons = _thin(HORIZONS, small)
     for h in horizons:
-        cfg = TrackerConfig(kalman=base.kalman, imm=base.imm, lookahead=L, horizon=h)
+        cfg = dataclasses.replace(base, horizon=h)  # every other field kept
         runs[(STREAM, h)] = run(data, lambda t, p, q, r, c=cfg: track(t, p, q, r, config=c), L)
     h = F.horizon_rule(lambda h: runs[(STREAM, h)], horizons, kf_p, kf_r, hold, train, log)
     tuned[STREAM] = (h, h)

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import math
 import sys
@@ -334,7 +335,7 @@ def main(argv=None):
 
     def sweep_stream(label, tcfg):
         def make(h):
-            c = TrackerConfig(kalman=tcfg.kalman, imm=tcfg.imm, adapt=tcfg.adapt, horizon=h)
+            c = dataclasses.replace(tcfg, horizon=h)  # every other field kept
             return lambda t, p, q, r: track(t, p, q, r, config=c)
         for h in HORIZONS:
             runs[(label, h)] = run(data, make(h))
@@ -461,7 +462,7 @@ def main(argv=None):
     imm_stream = dict(streams)["phjax stream (imm)"]
 
     def stream_fn(h):
-        c = TrackerConfig(kalman=imm_stream.kalman, imm=imm_stream.imm, horizon=h)
+        c = dataclasses.replace(imm_stream, horizon=h)
         return lambda t, p, q, r: track(t, p, q, r, config=c)
 
     phase_methods = [(f"phjax stream (imm), horizon {h_op:g}", stream_fn(h_op), stream_fn(h_op)),

@@ -257,7 +257,7 @@ def add_commands(sub) -> None:
                    help="after a loss long enough for the stream to come to rest (coast time "
                    "+ stop time, 0.15 s by default, past its last segment), jump to the "
                    "re-acquired pose at once instead of gliding there within one horizon "
-                   "(~30 ms) from where it stopped")
+                   "from where it stopped (TrackerConfig.reacquire)")
     p.add_argument("--center", action="store_true",
                    help="the first pose becomes the origin (SIGUSR1 re-centres at any time)")
     p.add_argument("--monocular", choices=("net", "landmarks"), default="net",

@@ -80,6 +80,9 @@ def _imm_from_dict(sec, source: str) -> IMMConfig | None:
             if key in sec:
                 kw[key] = tuple(_MODEL_KINDS[m["model"]](log_q=float(m["log_q"]))
                                 for m in sec.pop(key))
+        for name, value in sec.items():  # numbers only (true is not 1.0)
+            if isinstance(value, bool):
+                raise ValueError(f"imm.{name} has an invalid value {value!r}")
         return IMMConfig(**kw, **sec)
     except (KeyError, TypeError, ValueError) as err:
         raise ValueError(f"{source}: invalid imm section: {err}") from err

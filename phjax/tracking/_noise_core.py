@@ -36,7 +36,8 @@ def window_residuals(
     Returns:
         ``(res_p, p_ok, res_r, q_ok)``: the unit-norm divided differences of the positions and
         of the world-frame rotation vectors ``log(q_j q_ref^-1)`` (``q_ref`` the window's
-        second sample), and whether each window is usable (finite samples, increasing times).
+        second sample), and whether each window is usable (finite samples, increasing times,
+        and for orientation no zero quaternion).
         Residuals of unusable windows are finite placeholders.
     """
     dtype = t.dtype
@@ -71,7 +72,7 @@ def robust_std(res: Float[Array, "w c"], ok: Bool[Array, " w"]) -> Float[Array, 
 #: residuals beyond this many (estimated) stds are clipped in the online estimate
 CLIP = 3.0
 #: E[min(Z^2, CLIP^2)] for Z ~ N(0, 1): the online estimate's bias correction
-_CLIPPED_SECOND_MOMENT = 0.9950055
+_CLIPPED_SECOND_MOMENT = 0.99500728
 
 
 class NoiseMonitor(eqx.Module):
@@ -115,7 +116,9 @@ def noise_monitor_push(mon: NoiseMonitor, n: int, t, position, quaternion, pos_s
         n: the number of residuals it averages over (``TrackerConfig.noise_window``).
         t, position, quaternion: the measurement.
         pos_std, rot_std: the configured stds (the clipping's scale before the estimate
-            exceeds them).
+            exceeds them). ``phjax.live``'s per-frame ``noise_scale`` arrives here scaled, so
+            a doubtful frame's residual is clipped more loosely (one residual of about
+            ``n``), and its filter step uses ``max(scaled std, estimate)``.
     """
     shift = lambda buf, x: jnp.concatenate([buf[1:], x[None]])  # noqa: E731
     t_, p_, q_ = shift(mon.t, t), shift(mon.p, position), shift(mon.q, quaternion)

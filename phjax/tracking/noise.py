@@ -16,7 +16,8 @@ makes it robust to the few windows where the motion is not locally polynomial (i
 Orientations use the world-frame rotation vectors ``log(q_j q_ref^-1)`` (``q_ref`` the second
 sample of the window), matching the noise model ``q_meas = exp(n) q_true`` of
 :class:`~phjax.motion.simulate.SensorModel`. Windows with a NaN sample or non-increasing times
-are left out (dropouts are not bridged).
+are left out (dropouts are not bridged), and so, for orientation, are windows with a zero
+quaternion.
 
 What it measures is the *white* (sample-to-sample independent) part of the noise. Slowly
 varying errors (SLAM drift) are removed by the difference like the motion, so they are not

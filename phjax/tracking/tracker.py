@@ -147,8 +147,8 @@ class TrackerConfig(eqx.Module):
             value.
         reacquire: re-acquisition after a long loss (static; default ``False``). With
             ``True`` the first frame after the stream has stopped (more than ``coast_time +
-            stop_time`` past its segment's end, the gap :func:`reconstruct` bridges as a
-            loss) starts the stream again at the filter's estimate at rest, as the first
+            stop_time`` of the segment being rendered past its end, the gap
+            :func:`reconstruct` bridges as a loss) starts the stream again at the filter's estimate at rest, as the first
             frame does: one jump to the re-acquired pose. By default the stream glides there
             from where it came to rest within one horizon (C1, no jump): after a 0.97 s loss
             of a walking head (TUM VI room2) that glide has 874, 526 and 152 mm of error in
@@ -559,8 +559,8 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion,
     # at the filter's estimate at rest
     z = jnp.zeros(3, dtype)
     fresh = ~was_init
-    if config.reacquire:
-        rest = jnp.asarray(config.coast_time, dtype) + jnp.asarray(config.stop_time, dtype)
+    if config.reacquire:  # stopped: past the coasting of the segment as it was rendered
+        rest = state.segment.coast_time + state.segment.stop_time
         fresh = fresh | (u - state.segment.end > rest)
     p_r = jnp.where(fresh, p_k, p_r)
     v_r = jnp.where(fresh, z, v_r)

@@ -321,23 +321,36 @@ def test_a_replaced_log_is_named_as_replaced(tmp_path, capsys):
     assert read_tum(log).num_samples > 0
 
 
-def test_reacquire_and_noise_window_options(tmp_path, capsys):
-    """A pose file with a 1 s gap across which the head moved 0.3 m: by default the sent
-    stream glides to the new pose over a few samples (largest step measured 0.115 m); with
-    --reacquire it jumps there in one sample (0.300 m; TrackerConfig.reacquire).
-    --noise-window 0 turns the floor off (a valid value)."""
-    t = np.concatenate([np.arange(30) / 30, 2.0 + np.arange(15) / 30])
+def test_reacquire_and_noise_window_options(tmp_path, capsys, monkeypatch):
+    """The flags reach the tracker's config (--noise-window N, default 60; --reacquire), and
+    re-acquisition works in the live runner, whose adaptive settling lengthens the horizon
+    and coast time after a loss: a pose file with a 0.4 s gap across which the head moved
+    0.3 m. By default the sent stream glides to the new pose (largest step per sample
+    measured 0.144 m); with --reacquire it jumps there in one sample (0.300 m)."""
+    import phjax.live as live
+
+    configs = []
+
+    class Recording(live.LiveTracker):
+        def __init__(self, *args, config=None, **kwargs):
+            configs.append(config)
+            super().__init__(*args, config=config, **kwargs)
+
+    monkeypatch.setattr(live, "LiveTracker", Recording)
+    t = np.concatenate([np.arange(30) / 30, 1.4 + np.arange(15) / 30])
     p = np.zeros((len(t), 3))
-    p[t >= 2.0, 0] = 0.3
+    p[t >= 1.4, 0] = 0.3
     src = tmp_path / "gap.txt"
     write_tum(src, Trajectory(t, p, np.tile([1.0, 0, 0, 0], (len(t), 1))))
     steps = {}
-    for flags in ((), ("--reacquire", "--noise-window", "0")):
+    for flags, window, reacquire in (((), 60, False), (("--reacquire", "--noise-window", "0"),
+                                                      0, True)):
         log = tmp_path / f"sent{len(flags)}.tum"
         assert main(["live", f"poses:{src}", "--quiet", "--log", str(log), *flags]) == 0, (
             capsys.readouterr().err)
+        assert (configs[-1].noise_window, configs[-1].reacquire) == (window, reacquire)
         sent = read_tum(log).positions
         assert np.isfinite(sent).all() and abs(sent[-1, 0] - 0.3) < 0.01
-        steps[flags] = np.abs(np.diff(sent[:, 0])).max()
-    assert steps[("--reacquire", "--noise-window", "0")] > 0.25, steps  # one jump
-    assert steps[()] < 0.2, steps  # a glide over several samples
+        steps[reacquire] = np.abs(np.diff(sent[:, 0])).max()
+    assert steps[True] > 0.25, steps  # one jump
+    assert steps[False] < 0.2, steps  # a glide over several samples

@@ -68,3 +68,12 @@ def test_reacquire_config_round_trip_and_errors():
     for bad in (1, "yes", None):
         with pytest.raises(ValueError, match="TrackerConfig.reacquire must be True or False"):
             TrackerConfig(reacquire=bad)
+    # in a config file, true / false only for the switches, and only true / false for them
+    good = config_to_dict(TrackerConfig())
+    for field, value in (("reacquire", 1), ("horizon", True)):
+        d = {**good, "tracker": {**good["tracker"], field: value}}
+        with pytest.raises(ValueError, match=f"tracker.{field} has an invalid value"):
+            config_from_dict(d)
+    d = {**good, "imm": {**good["imm"], "log_switch_rate": True}}
+    with pytest.raises(ValueError, match="imm.log_switch_rate has an invalid value True"):
+        config_from_dict(d)
