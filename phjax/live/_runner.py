@@ -695,7 +695,10 @@ class LiveTracker:
         ``age_p50`` / ``_p99`` (``Sample.age``), ``applied_age_p50`` / ``_p99`` (capture to
         stream update), ``sent_age_p50`` / ``_p99`` (capture to send), ``front_end_p50`` (the
         front-end's time per frame; NaN if the source does not say), ``horizon`` and
-        ``lookahead`` (s, of the config in use), ``send_errors`` (per output URL: packets the
+        ``lookahead`` (s, of the config in use), ``noise`` (the filter's position / orientation
+        measurement stds now, m / rad: :meth:`TrackerStream.measurement_noise`) and
+        ``noise_raised`` (whether the online noise floor has raised them above the configured
+        ones: the source is noisier than assumed), ``send_errors`` (per output URL: packets the
         network refused, e.g. nothing listening on that port), ``out_of_range`` (per output
         URL: poses not sent because a value does not fit its format).
         """
@@ -709,6 +712,9 @@ class LiveTracker:
         elapsed = (end - self.t0) if self.t0 is not None else 0.0
         cam = (ft.size - 1) / (ft.max() - ft.min()) if ft.size > 1 and ft.max() > ft.min() \
             else float("nan")
+        noise = self.stream.measurement_noise()
+        base = self._config_used.kalman if self._config_used.imm is None else self._config_used.imm
+        raised = (noise[0] > float(base.pos_meas_noise) or noise[1] > float(base.rot_meas_noise))
         return {
             "elapsed": elapsed,
             "frames": self.frames,
@@ -735,6 +741,8 @@ class LiveTracker:
             "front_end_p50": _percentile(work, 50),
             "horizon": float(self._config_used.horizon),
             "lookahead": float(self._config_used.lookahead),
+            "noise": noise,
+            "noise_raised": raised,
             "send_errors": {o.url: int(getattr(o, "send_errors", 0)) for o in self._outputs},
             "out_of_range": {o.url: int(getattr(o, "out_of_range", 0)) for o in self._outputs},
         }
@@ -743,10 +751,12 @@ class LiveTracker:
         """One line of what a user watches: input frames per second and output poses per
         second since the previous call (or the start), lost frames (total, by reason), the
         measurement and sent ages (medians, recent window), the render interval's 99th
-        percentile and missed deadlines, and the lookahead in use::
+        percentile and missed deadlines, the lookahead in use, and, when the online noise
+        floor has raised the filter's measurement noise (a source noisier than assumed), that
+        noise::
 
             t   12.0 s | in 29.9 fps, lost 4 (late 1, NO_FACE 3) | out 120.0 Hz, p99 8.9 ms,
-            missed 0 | age 24 ms, sent 41 ms | lookahead 20 ms
+            missed 0 | age 24 ms, sent 41 ms | lookahead 20 ms | noise 18 mm, 2.9 deg
 
         (one line; wrapped here).
         """
@@ -766,7 +776,9 @@ class LiveTracker:
                 + (f"failed {failed}, " if failed else "")
                 + f"p99 {_ms(s['interval_p99'], 1)}, missed {s['missed_deadlines']} | "
                 f"age {_ms(s['applied_age_p50'])}, sent {_ms(s['sent_age_p50'])} | "
-                f"lookahead {1e3 * s['lookahead']:.0f} ms")
+                f"lookahead {1e3 * s['lookahead']:.0f} ms"
+                + (f" | noise {1e3 * s['noise'][0]:.0f} mm, {math.degrees(s['noise'][1]):.1f} deg"
+                   if s["noise_raised"] else ""))
 
 
 def _ms(seconds: float, digits: int = 0) -> str:

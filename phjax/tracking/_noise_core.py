@@ -135,14 +135,16 @@ def noise_monitor_push(mon: NoiseMonitor, n: int, t, position, quaternion, pos_s
     return NoiseMonitor(t_, p_, q_, vp, vr, cp, cr)
 
 
-def noise_monitor_std(mon: NoiseMonitor, min_count: int) -> tuple[Float[Array, ""], Float[Array, ""]]:
+def noise_monitor_std(mon: NoiseMonitor, min_count: int, xp=jnp
+                      ) -> tuple[Float[Array, ""], Float[Array, ""]]:
     """Isotropic position (m) and orientation (rad) noise std (the RMS over the axes); 0 while
     fewer than ``min_count`` residuals were used (the caller takes the larger of this and the
-    configured noise, so 0 means "no estimate yet")."""
+    configured noise, so 0 means "no estimate yet"). ``xp=numpy`` computes it on the host
+    (a status display: no JAX dispatch or compilation)."""
 
     def iso(var, count):
-        v = jnp.mean(var)
-        est = jnp.sqrt(jnp.maximum(v, jnp.finfo(v.dtype).tiny))  # a finite gradient at 0
-        return jnp.where(count >= min_count, est, 0.0)
+        v = xp.mean(xp.asarray(var))
+        est = xp.sqrt(xp.maximum(v, xp.finfo(v.dtype).tiny))  # a finite gradient at 0
+        return xp.where(xp.asarray(count) >= min_count, est, 0.0)
 
     return iso(mon.var_p, mon.count_p), iso(mon.var_r, mon.count_r)

@@ -34,11 +34,13 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._jit import Tiered, jit
 from .._np_quat import np_valid_quaternions
+from ._noise_core import noise_monitor_std
 from .tracker import (
     check_config,
     TrackerConfig,
     TrackerState,
     _filter_restart_part,
+    _noise_min_count,
     _sample,
     _update,
     tracker_config_arrays,
@@ -256,6 +258,19 @@ class TrackerStream:
         else:  # device values: relative to the origin already (0 unless set)
             self.origin = 0.0 if self.origin is None else self.origin
         self._leaves = self._update(self._config_leaves, self._leaves, t, position, quaternion)
+
+    def measurement_noise(self) -> tuple[float, float]:
+        """The position (m) and orientation (rad) measurement stds of the next filter step:
+        the configured ones, raised by the online noise floor
+        (``TrackerConfig.noise_window``) where its estimate is larger. Computed on the host
+        (no JAX call): cheap enough for a status display."""
+        filt = self.config.kalman if self.config.imm is None else self.config.imm
+        pos, rot = float(filt.pos_meas_noise), float(filt.rot_meas_noise)
+        noise = self.state.noise
+        if noise is None:
+            return pos, rot
+        est_p, est_r = noise_monitor_std(noise, _noise_min_count(self.config), xp=np)
+        return max(pos, float(est_p)), max(rot, float(est_r))
 
     def wait_compiled(self, timeout: float | None = None) -> bool:
         """Wait until updates run the optimised program (see ``fast_start``).

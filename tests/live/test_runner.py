@@ -724,6 +724,30 @@ def test_status_line_reports_input_output_lost_age_and_lookahead():
     assert s["sent_hz"] == pytest.approx(120.0, abs=1e-6)  # the virtual clock: exact
 
 
+def test_status_line_shows_the_noise_the_floor_measured():
+    """A pose source with 20 mm / 3 deg of white noise (the live filter assumes 5 mm / 1 deg):
+    the online noise floor raises the filter's noise, and the status line says so, with a
+    value near the truth (the same source without noise: no noise field)."""
+    import re
+
+    from phjax._np_quat import np_from_rotvec, np_qmul
+
+    t, p, q = smooth_motion(240, 30.0, seed=7)  # 8 s
+    rng = np.random.default_rng(7)
+    noisy_p = p + rng.normal(0, 0.02, p.shape)
+    noisy_q = np_qmul(np_from_rotvec(rng.normal(0, np.radians(3.0), (len(t), 3))), q)
+    lt, _ = _run(PoseReplaySource(t, noisy_p, noisy_q), 120.0, linger=0.0)
+    line = lt.status_line()
+    print("\n" + line)
+    mm, deg = (float(x) for x in re.search(r"\| noise (\d+) mm, ([\d.]+) deg$", line).groups())
+    # the truth is 20 mm / 3 deg (the running estimate: within 15 %)
+    assert 17 <= mm <= 23 and 2.55 <= deg <= 3.45, line
+    s = lt.stats()
+    assert s["noise_raised"] and s["noise"][0] == pytest.approx(mm / 1e3, abs=5e-4)
+    clean, _ = _run(PoseReplaySource(t, p, q), 120.0, linger=0.0)
+    assert "noise" not in clean.status_line() and not clean.stats()["noise_raised"]
+
+
 def _rss_mb() -> float:
     with open("/proc/self/status") as f:
         for line in f:

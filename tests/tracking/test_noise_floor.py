@@ -53,6 +53,12 @@ def test_online_estimate_agrees_with_the_offline_estimate(seed):
     offline = estimate_measurement_noise(*meas)
     assert abs(pos / float(offline.pos_meas_noise) - 1) < 0.08, (pos, offline)
     assert abs(rot / float(offline.rot_meas_noise) - 1) < 0.08, (rot, offline)
+    # what a status display reads: the same numbers from the host, max'ed with the config
+    stream = phjax.TrackerStream(config, dtype=jnp.float64, fast_start=False)
+    stream.state = dataclasses.replace(stream.state, noise=mon)
+    assert stream.measurement_noise() == pytest.approx((pos, rot), rel=1e-12)
+    assert phjax.TrackerStream().measurement_noise() == pytest.approx(
+        (0.005, math.radians(1.0)))
     # dropouts: a window with a lost frame is not counted (as offline)
     assert int(mon.count_p) == int(offline.pos_windows)
     assert int(mon.count_r) == int(offline.rot_windows)
