@@ -82,21 +82,21 @@ def _noise_value(text: str):
     """``'config'``, ``'auto'`` or ``(mm, deg)`` from a ``--measurement-noise`` value."""
     import argparse
 
-    if text in ("config", "auto"):
+    if text in ("config", "auto", "floor"):
         return text
     try:
         mm, deg = (float(x) for x in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"expected 'config', 'auto' or 'MM,DEG', got {text!r}") from None
+            f"expected 'config', 'auto', 'floor' or 'MM,DEG', got {text!r}") from None
     if not (np.isfinite(mm) and np.isfinite(deg) and mm > 0 and deg > 0):
         raise argparse.ArgumentTypeError(f"stds must be positive and finite, got {text!r}")
     return mm, deg
 
 
 def add_noise_argument(parser, has_config: bool = True) -> None:
-    """Add ``--measurement-noise {config,auto,MM,DEG}`` to ``parser`` (``has_config``: the
-    command also has ``--config``)."""
+    """Add ``--measurement-noise {config,auto,floor,MM,DEG}`` to ``parser`` (``has_config``:
+    the command also has ``--config``)."""
     default = ("from --config or the built-in 5 mm / 1 deg sensor" if has_config
                else "the built-in 5 mm / 1 deg sensor")
     parser.add_argument(
@@ -104,7 +104,9 @@ def add_noise_argument(parser, has_config: bool = True) -> None:
         help=f"the filters' measurement noise: 'config' (default: {default}), 'auto' (estimated from the input poses themselves, "
         "phjax.tracking.estimate_measurement_noise: right for white noise such as a per-frame "
         "head-pose front-end; a SLAM estimate with frame-to-frame correlated errors is often "
-        "better with the default) or 'MM,DEG' (position std in mm, orientation std in degrees)")
+        "better with the default), 'floor' (the configured noise, raised to that estimate "
+        "where it is larger, never lowered: safe for a source of unknown noise) or 'MM,DEG' "
+        "(position std in mm, orientation std in degrees)")
 
 
 def with_noise_from_args(args, config, times, positions, quaternions):
@@ -121,19 +123,24 @@ def with_noise_from_args(args, config, times, positions, quaternions):
     if value == "config":
         return config, None
     config = TrackerConfig() if config is None else config
-    if value == "auto":
+    if value in ("auto", "floor"):
         try:
             noise = estimate_measurement_noise(times, positions, quaternions)
         except ValueError as e:
-            raise ValueError(f"--measurement-noise auto: cannot estimate the noise from this "
+            raise ValueError(f"--measurement-noise {value}: cannot estimate the noise from this "
                              f"input ({e}); give it as MM,DEG") from None
         pos, rot = float(noise.pos_meas_noise), float(noise.rot_meas_noise)
         pos = pos if np.isfinite(pos) and pos > 0 else None
         rot = rot if np.isfinite(rot) and rot > 0 else None
         if pos is None and rot is None:
-            raise ValueError("--measurement-noise auto: the input has too few consecutive "
+            raise ValueError(f"--measurement-noise {value}: the input has too few consecutive "
                              "valid poses to estimate the noise")
         how = "estimated from the input"
+        if value == "floor":  # never below the configured noise (of the causal stream's filter)
+            filt = config.kalman if config.imm is None else config.imm
+            pos = max(float(filt.pos_meas_noise), pos) if pos is not None else None
+            rot = max(float(filt.rot_meas_noise), rot) if rot is not None else None
+            how = "the configured, raised to the input's estimate where larger"
     else:
         mm, deg = value
         pos, rot, how = mm / 1e3, float(np.deg2rad(deg)), "given"

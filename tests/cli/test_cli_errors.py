@@ -141,7 +141,7 @@ BAD_ARGUMENTS = [
      "not found in NOFOLDER: pass --model-dir FOLDER (a folder holding the model files"),
     (["smooth", "FILE"], "the following arguments are required: -o/--output"),
     (["smooth", "FILE", "-o", "OUT.txt", "--measurement-noise", "3,x"],
-     "argument --measurement-noise: expected 'config', 'auto' or 'MM,DEG'"),
+     "argument --measurement-noise: expected 'config', 'auto', 'floor' or 'MM,DEG'"),
     (["smooth", "FILE", "-o", "OUT.txt", "--measurement-noise", "0,1"],
      "argument --measurement-noise: stds must be positive and finite"),
     (["smooth", "FILE", "-o", "OUT.txt", "--measurement-noise", "5"],

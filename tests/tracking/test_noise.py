@@ -192,3 +192,30 @@ def test_cli_smooth_measurement_noise_auto(tmp_path):
             mm = float(line.split(":")[1].split("mm")[0])
             assert 1.6 < mm < 2.4, line  # the simulated 2 mm, within 20 %
     assert np.max(np.abs(outs["auto"] - outs["config"])) > 1e-5
+
+
+@pytest.mark.parametrize("sigma_mm", [2.0, 20.0])
+def test_measurement_noise_floor_choice(sigma_mm):
+    """``--measurement-noise floor``: the configured noise where the file's white noise is
+    lower (a 2 mm sensor: the config's 5 mm, unchanged), the estimate where it is higher
+    (20 mm: as 'auto')."""
+    import argparse
+
+    import phjax as pj
+    from phjax.cli._tune import with_noise_from_args
+
+    t, p, q = pj.synthetic_head_motion(duration=6.0, seed=3)
+    sensor = pj.SensorModel(sigma_p=sigma_mm / 1e3, sigma_r=float(np.deg2rad(sigma_mm / 4)),
+                            dropout=0.0)
+    meas = [np.asarray(x, np.float64) for x in pj.simulate_measurements(1, t, p, q, sensor)]
+    got = {}
+    for value in ("floor", "auto"):
+        cfg, desc = with_noise_from_args(argparse.Namespace(measurement_noise=value), None,
+                                         *meas)
+        got[value] = (float(cfg.imm.pos_meas_noise), float(cfg.imm.rot_meas_noise))
+        assert cfg.kalman.pos_meas_noise == cfg.imm.pos_meas_noise and desc
+    if sigma_mm < 5:
+        assert got["floor"] == pytest.approx((0.005, math.radians(1.0)))
+        assert got["auto"][0] < 0.003
+    else:
+        assert got["floor"] == got["auto"] and got["auto"][0] > 0.015
