@@ -117,7 +117,7 @@ def with_noise_from_args(args, config, times, positions, quaternions):
         ValueError: 'auto' on too few valid samples (the CLI prints it).
     """
     from ..tracking.noise import estimate_measurement_noise, with_measurement_noise
-    from ..tracking.tracker import TrackerConfig
+    from ..tracking.tracker import TrackerConfig, _stream_filter
 
     value = getattr(args, "measurement_noise", "config")
     if value == "config":
@@ -137,7 +137,7 @@ def with_noise_from_args(args, config, times, positions, quaternions):
                              "valid poses to estimate the noise")
         how = "estimated from the input"
         if value == "floor":  # never below the configured noise (of the causal stream's filter)
-            filt = config.kalman if config.imm is None else config.imm
+            filt = _stream_filter(config)
             pos = max(float(filt.pos_meas_noise), pos) if pos is not None else None
             rot = max(float(filt.rot_meas_noise), rot) if rot is not None else None
             how = "the configured, raised to the input's estimate where larger"

@@ -80,7 +80,7 @@ from .._live_defaults import LIVE_NOISE_WINDOW
 from .._np_quat import np_qconj, np_qmul
 from ..tracking.kalman import KalmanConfig
 from ..tracking.stream import TrackerStream, _wait_optimised
-from ..tracking.tracker import TrackerConfig, _update
+from ..tracking.tracker import TrackerConfig, _stream_filter, _update
 from ._clock import RealClock, VirtualClock
 from ._outputs import Output, TumLog, open_output
 from ._sources import Measurement, Source, open_source
@@ -713,7 +713,7 @@ class LiveTracker:
         cam = (ft.size - 1) / (ft.max() - ft.min()) if ft.size > 1 and ft.max() > ft.min() \
             else float("nan")
         noise = self.stream.measurement_noise()
-        base = self._config_used.kalman if self._config_used.imm is None else self._config_used.imm
+        base = _stream_filter(self._config_used)
         raised = (noise[0] > float(base.pos_meas_noise) or noise[1] > float(base.rot_meas_noise))
         return {
             "elapsed": elapsed,

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .tracker import TrackerConfig
+from .tracker import TrackerConfig, _stream_filter
 
 #: Parameters tuned by default for the single-model filter (``TrackerConfig(imm=None)``): its
 #: noise model and the segment horizon. For the IMM see :func:`default_parameters`.
@@ -46,7 +46,7 @@ def _unused(config: TrackerConfig) -> set:
         unused.add("kalman")
     else:
         unused.add("adapt")  # adaptive settling reads the IMM's mode probabilities
-    if (config.kalman if config.imm is None else config.imm).order < 3:
+    if _stream_filter(config).order < 3:
         unused.add("init_pos_acc_std")  # no acceleration in the state
     return unused
 

@@ -42,6 +42,7 @@ from .tracker import (
     _filter_restart_part,
     _noise_min_count,
     _sample,
+    _stream_filter,
     _update,
     tracker_config_arrays,
     tracker_init,
@@ -264,7 +265,7 @@ class TrackerStream:
         the configured ones, raised by the online noise floor
         (``TrackerConfig.noise_window``) where its estimate is larger. Computed on the host
         (no JAX call): cheap enough for a status display."""
-        filt = self.config.kalman if self.config.imm is None else self.config.imm
+        filt = _stream_filter(self.config)
         pos, rot = float(filt.pos_meas_noise), float(filt.rot_meas_noise)
         noise = self.state.noise
         if noise is None:

@@ -465,11 +465,16 @@ def _filter_restart_part(config: TrackerConfig, state, part: int, position, quat
     return eqx.tree_at(lambda s: [getattr(s, n) for n in names], state, new)
 
 
+def _stream_filter(config: TrackerConfig) -> KalmanConfig | IMMConfig:
+    """The config of the filter the causal stream runs: the IMM's, or the single model's."""
+    return config.kalman if config.imm is None else config.imm
+
+
 def _noise_floor(config: TrackerConfig, noise: NoiseMonitor) -> TrackerConfig:
     """``config`` whose filter (the one the stream runs) has measurement noise no lower than
     the monitor's estimate."""
     pos, rot = noise_monitor_std(noise, _noise_min_count(config))
-    filt = config.kalman if config.imm is None else config.imm
+    filt = _stream_filter(config)
     filt = dataclasses.replace(
         filt, pos_meas_noise=jnp.maximum(jnp.asarray(filt.pos_meas_noise, pos.dtype), pos),
         rot_meas_noise=jnp.maximum(jnp.asarray(filt.rot_meas_noise, rot.dtype), rot))
@@ -540,13 +545,13 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion,
             f"tracker update: the state was made for another TrackerConfig.noise_window (the "
             f"config has {config.noise_window}, the state {'no' if noise is None else 'a'} "
             "noise monitor); start it with tracker_init(config)")
+    filter_config = config
     if noise is not None:  # the online noise floor (TrackerConfig.noise_window)
-        filt = config.kalman if config.imm is None else config.imm
+        filt = _stream_filter(config)
         noise = noise_monitor_push(noise, config.noise_window, t, position, quaternion,
                                    filt.pos_meas_noise, filt.rot_meas_noise)
-        kf, info = _filter_step(_noise_floor(config, noise), state.filter, t, position, quaternion)
-    else:
-        kf, info = _filter_step(config, state.filter, t, position, quaternion)
+        filter_config = _noise_floor(config, noise)
+    kf, info = _filter_step(filter_config, state.filter, t, position, quaternion)
     u = t_render + jnp.asarray(config.lookahead, dtype)  # the display time of that pose
     used = info.pos_used | info.rot_used
     h = jnp.asarray(config.horizon, dtype) * _adaptive_factor(config, kf, dtype)
