@@ -326,7 +326,10 @@ def test_reacquire_and_noise_window_options(tmp_path, capsys, monkeypatch):
     re-acquisition works in the live runner, whose adaptive settling lengthens the horizon
     and coast time after a loss: a pose file with a 0.4 s gap across which the head moved
     0.3 m. By default the sent stream glides to the new pose (largest step per sample
-    measured 0.144 m); with --reacquire it jumps there in one sample (0.300 m)."""
+    measured 0.052 m); with --reacquire it jumps there in one sample (0.300 m). The CLI's
+    tracker runs on the virtual clock: on the real clock a render loop held up by the
+    optimised program's background compilation (one core per test worker) skipped the whole
+    glide once in ten runs, and sent it as one step."""
     import phjax.live as live
 
     configs = []
@@ -334,7 +337,7 @@ def test_reacquire_and_noise_window_options(tmp_path, capsys, monkeypatch):
     class Recording(live.LiveTracker):
         def __init__(self, *args, config=None, **kwargs):
             configs.append(config)
-            super().__init__(*args, config=config, **kwargs)
+            super().__init__(*args, config=config, **{**kwargs, "clock": live.VirtualClock()})
 
     monkeypatch.setattr(live, "LiveTracker", Recording)
     t = np.concatenate([np.arange(30) / 30, 1.4 + np.arange(15) / 30])
@@ -353,4 +356,4 @@ def test_reacquire_and_noise_window_options(tmp_path, capsys, monkeypatch):
         assert np.isfinite(sent).all() and abs(sent[-1, 0] - 0.3) < 0.01
         steps[reacquire] = np.abs(np.diff(sent[:, 0])).max()
     assert steps[True] > 0.25, steps  # one jump
-    assert steps[False] < 0.2, steps  # a glide over several samples
+    assert steps[False] < 0.1, steps  # a glide over several samples
