@@ -146,3 +146,18 @@ def unit_perpendicular(u: Float[ArrayLike, "... 3"]) -> Array:
     ub = jnp.cross(u, jnp.broadcast_to(b, u.shape))
     use_a = safe_norm(ua, keepdims=True) >= 0.5
     return safe_normalize(jnp.where(use_a, ua, ub))
+
+
+def filter_scan(step, init, xs):
+    """``lax.scan(step, init, xs)`` of a filter over its measurements, with the step under
+    ``jax.checkpoint``: the same values and gradients, but the reverse pass recomputes each
+    step from its carry instead of storing every intermediate value of every step. For the
+    tracker's scan (:func:`phjax.track`, the tuning loss) this makes gradients cheaper to
+    compile and no slower to run. Measured on the project's 2-core CPU, one process per run,
+    ``jax.grad`` through ``track`` of 60 frames: compiled in 32-51 s instead of 46-55 s (four
+    runs each, XLA's default level; the test suite's ``-O0``: 18-23 s instead of 27-30 s), run
+    in 29-50 ms instead of 36-63 ms; the tuning loss's value and gradient on four 20 s
+    recordings: 6.3 s per call instead of 7.3 s, the same compile time. Values and gradients
+    agree to 4e-14 (relative).
+    """
+    return lax.scan(jax.checkpoint(step), init, xs)

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._jit import jit
-from .._misc import safe_div, safe_sqrt
+from .._misc import filter_scan, safe_div, safe_sqrt
 from ..quaternion import quat_conj, quat_geodesic_distance, quat_mul, quat_normalize, quat_to_rotvec
 from .tracker import TrackerConfig, tracker_init, tracker_sample, tracker_update
 
@@ -25,7 +25,7 @@ def _stream(config: TrackerConfig, times, positions, quaternions, render_times):
         new = tracker_update(config, state, *meas)
         return new, new
 
-    _, states = jax.lax.scan(body, state0, (times, positions, quaternions))
+    _, states = filter_scan(body, state0, (times, positions, quaternions))
     idx = jnp.searchsorted(times, render_times, side="right") - 1
     sel = jax.tree.map(lambda x: x[jnp.maximum(idx, 0)], states)
     p, q = jax.vmap(lambda s, tau: tracker_sample(config, s, tau))(sel, render_times)

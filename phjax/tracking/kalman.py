@@ -73,7 +73,7 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._jit import jit
-from .._misc import POSITIVE, check_number_fields, dot_last
+from .._misc import POSITIVE, check_number_fields, dot_last, filter_scan
 from ..quaternion import quat_conj, quat_from_rotvec, quat_mul, quat_normalize, quat_to_rotvec
 
 __all__ = [
@@ -761,7 +761,7 @@ def _filter_scan(name, step, uninitialized, config, times, positions, quaternion
         state, info = step(config, state, *inputs)
         return state, (state, info)
 
-    _, (states, infos) = lax.scan(body, initial_state, (times, positions, quaternions))
+    _, (states, infos) = filter_scan(body, initial_state, (times, positions, quaternions))
     return states, infos
 
 

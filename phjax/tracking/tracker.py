@@ -54,7 +54,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._jit import jit
-from .._misc import FINITE, POSITIVE, any_traced, check_number_fields
+from .._misc import FINITE, POSITIVE, any_traced, check_number_fields, filter_scan
 from .._np_quat import np_valid_quaternions
 from ..io import TrajectoryWarning
 from .._sizes import unpad_rows
@@ -759,7 +759,7 @@ def _track_core(config, times, positions, quaternions, render_times):
         new = _update(config, state, t, p, q)
         return new, new.segment  # only what a render sample reads is stacked and gathered
 
-    _, segments = jax.lax.scan(body, state0, (times, positions, quaternions))
+    _, segments = filter_scan(body, state0, (times, positions, quaternions))
     sel, before = _latest_states(times, segments, render_times)
     p, _, q, _ = jax.vmap(lambda seg, tau: seg.evaluate(tau, velocities=False))(sel, render_times)
     nan = jnp.where(before, jnp.nan, 0.0)[:, None].astype(dtype)
