@@ -40,7 +40,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 PKG_ROOT = ROOT  # the checkout whose phjax the children import (--root)
 MARK = "BENCH_STARTUP_JSON "
-ENTRIES = ("track", "reconstruct", "stream", "sample", "shape", "imm", "kalman", "head_pose")
+ENTRIES = ("track", "reconstruct", "stream", "sample", "shape", "imm", "kalman", "grad",
+           "head_pose")
 PARTS = ("import", *ENTRIES, "cli", "live")
 BACKEND = "/jax/core/compile/backend_compile_duration"
 TRACE = "/jax/core/compile/jaxpr_trace_duration"
@@ -431,6 +432,33 @@ def entry_kalman(ctx, dtype, _):
     t, p, q, _ = _recording(300, dtype)
     ctx.call("phjax.kalman_filter, N=300",
              lambda: kalman_filter(phjax.TrackerConfig().kalman, t, p, q))
+
+
+def entry_grad(ctx, dtype, _):
+    """Gradients as a user (``jax.grad`` of a loss of ``track``'s output with respect to the
+    config) and as gradient tuning (the tuning loss's value and gradient) first meet them."""
+    import jax
+    import jax.numpy as jnp
+
+    import phjax
+    from phjax.tracking import tuning
+
+    t, p, q, r = (jnp.asarray(x) for x in _recording(300, dtype))
+
+    def loss(config):
+        pos, quat = phjax.track(t, p, q, r, config=config)
+        return jnp.nanmean(pos ** 2) + jnp.nanmean(quat[:, 1:] ** 2)
+
+    grad = ctx.wrap(jax.jit(jax.grad(loss)), "jax.jit(jax.grad(loss of phjax.track))")
+    ctx.call("jax.grad of a loss of phjax.track, N=300, w.r.t. the config",
+             lambda: grad(phjax.TrackerConfig()))
+    if not ctx.aot_mode:  # the tuning loss compiles inside the problem's own jit
+        gt = _motion(1200, rate=120.0, seed=3)
+        problem = tuning.make_problem(tuning.prepare_recordings([gt], seed=0, dtype=dtype),
+                                      lam=0.3)
+        y = problem.params_from_config(phjax.TrackerConfig())
+        ctx.call("tuning: value and gradient of the loss, one 10 s recording",
+                 lambda: problem.value_and_grad(y))
 
 
 def entry_head_pose(ctx, _, frame):

@@ -153,11 +153,12 @@ def filter_scan(step, init, xs):
     ``jax.checkpoint``: the same values and gradients, but the reverse pass recomputes each
     step from its carry instead of storing every intermediate value of every step. For the
     tracker's scan (:func:`phjax.track`, the tuning loss) this makes gradients cheaper to
-    compile and no slower to run. Measured on the project's 2-core CPU, one process per run,
-    ``jax.grad`` through ``track`` of 60 frames: compiled in 32-51 s instead of 46-55 s (four
-    runs each, XLA's default level; the test suite's ``-O0``: 18-23 s instead of 27-30 s), run
-    in 29-50 ms instead of 36-63 ms; the tuning loss's value and gradient on four 20 s
-    recordings: 6.3 s per call instead of 7.3 s, the same compile time. Values and gradients
-    agree to 4e-14 (relative).
+    compile at an unchanged run time. Measured on the project's 2-core CPU, one fresh process
+    per run (``benchmarks/bench_startup.py --only grad``, with ``--root`` on the code before):
+    ``jax.grad`` of a loss of ``track`` (300 frames, float32) compiled in 45.6 s instead of
+    60.6 s (1813 instead of 2697 fusions) and its first call took 56 s instead of 75 s; run
+    times moved by -22 % to +8 % in seven comparisons (the machine's noise); the tuning loss's
+    first value and gradient is unchanged (27.5 / 28.4 s). Values and gradients agree to
+    4e-14 (relative).
     """
     return lax.scan(jax.checkpoint(step), init, xs)
