@@ -12,7 +12,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from .._jit import jit
 from .._misc import filter_scan, safe_div, safe_sqrt
 from ..quaternion import quat_conj, quat_geodesic_distance, quat_mul, quat_normalize, quat_to_rotvec
-from .tracker import TrackerConfig, tracker_init, tracker_sample, tracker_update
+from .tracker import TrackerConfig, _latest_states, tracker_init, tracker_sample, tracker_update
 
 
 def _stream(config: TrackerConfig, times, positions, quaternions, render_times):
@@ -26,10 +26,9 @@ def _stream(config: TrackerConfig, times, positions, quaternions, render_times):
         return new, new
 
     _, states = filter_scan(body, state0, (times, positions, quaternions))
-    idx = jnp.searchsorted(times, render_times, side="right") - 1
-    sel = jax.tree.map(lambda x: x[jnp.maximum(idx, 0)], states)
+    sel, before = _latest_states(times, states, render_times)
     p, q = jax.vmap(lambda s, tau: tracker_sample(config, s, tau))(sel, render_times)
-    nan = jnp.where(idx < 0, jnp.nan, 0.0)[:, None].astype(p.dtype)
+    nan = jnp.where(before, jnp.nan, 0.0)[:, None].astype(p.dtype)
     return p + nan, q + nan
 
 
