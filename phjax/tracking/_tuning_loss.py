@@ -12,8 +12,8 @@ from jaxtyping import Array, ArrayLike, Float
 from .._misc import safe_div
 from ._batch import _lost_padding_frames
 from ._tuning_data import TuningData
-from ._tuning_stream import _stream, stream_metrics
-from .tracker import TrackerConfig
+from ._tuning_stream import stream_metrics
+from .tracker import TrackerConfig, _scan_stream
 
 
 def loss_terms(config: TrackerConfig, data: TuningData) -> Float[Array, "*R 4"]:
@@ -34,7 +34,7 @@ def loss_terms(config: TrackerConfig, data: TuningData) -> Float[Array, "*R 4"]:
         r_last = jnp.max(jnp.where(r_ok, r, -jnp.inf))
         r_last = jnp.where(jnp.isfinite(r_last), r_last, 0)
         r = jnp.where(r_ok, r, r_last + 1 + jnp.cumsum(~r_ok))
-        sp, sq = _stream(config, t, p, q, r)
+        sp, sq = _scan_stream(config, t, p, q, r)
         return stream_metrics(r, sp, sq, gp, gq, mask & r_ok)
 
     terms = jax.vmap(one)(flat.times, flat.positions, flat.quaternions, flat.render_times,

@@ -1,35 +1,16 @@
-"""The causal stream of :func:`phjax.track` written traceable in the data, and
-:func:`stream_metrics`, the differentiable ``[E_p, E_r, J_p, J_r]`` of a rendered stream: the
-pieces the tuning loss (:mod:`phjax.tracking.tuning`) and its reference scores are built from.
+""":func:`stream_metrics`, the differentiable ``[E_p, E_r, J_p, J_r]`` of a rendered stream:
+what the tuning loss (:mod:`phjax.tracking.tuning`) and its reference scores are made of. The
+stream itself is :func:`phjax.track`'s scan (``tracker._scan_stream``).
 """
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._jit import jit
-from .._misc import filter_scan, safe_div, safe_sqrt
+from .._misc import safe_div, safe_sqrt
 from ..quaternion import quat_conj, quat_geodesic_distance, quat_mul, quat_normalize, quat_to_rotvec
-from .tracker import TrackerConfig, _latest_states, tracker_init, tracker_sample, tracker_update
-
-
-def _stream(config: TrackerConfig, times, positions, quaternions, render_times):
-    """The causal stream of :func:`phjax.track` on prepared (sorted, de-duplicated) arrays,
-    traceable in the data: ``lax.scan`` of :func:`tracker_update`, then :func:`tracker_sample`
-    of the latest state with ``t <= tau``. NaN before the first valid measurement."""
-    state0 = tracker_init(config, times[0], times.dtype)
-
-    def body(state, meas):
-        new = tracker_update(config, state, *meas)
-        return new, new
-
-    _, states = filter_scan(body, state0, (times, positions, quaternions))
-    sel, before = _latest_states(times, states, render_times)
-    p, q = jax.vmap(lambda s, tau: tracker_sample(config, s, tau))(sel, render_times)
-    nan = jnp.where(before, jnp.nan, 0.0)[:, None].astype(p.dtype)
-    return p + nan, q + nan
 
 
 @jit

@@ -748,9 +748,13 @@ def _run_recording(core, config, times, positions, quaternions, render_times, dt
     return unpad_rows(out_p, m), unpad_rows(out_q, m)
 
 
-@jit
-def _track_core(config, times, positions, quaternions, render_times):
-    config = TrackerConfig() if config is None else config
+def _scan_stream(config, times, positions, quaternions, render_times):
+    """The causal render-rate stream on prepared (sorted, de-duplicated, relative) arrays,
+    traceable in the data and the config: ``lax.scan`` of :func:`tracker_update` over the
+    measurements, then the render segment of the latest measurement with ``t <= tau`` sampled
+    at each render time; NaN before the first valid measurement. The one scan of the tracker
+    behind :func:`track` (jitted as ``_track_core``) and the tuning loss
+    (:mod:`phjax.tracking._tuning_loss`)."""
     dtype = times.dtype
     state0 = tracker_init(config, times[0], dtype)
 
@@ -764,6 +768,12 @@ def _track_core(config, times, positions, quaternions, render_times):
     p, _, q, _ = jax.vmap(lambda seg, tau: seg.evaluate(tau, velocities=False))(sel, render_times)
     nan = jnp.where(before, jnp.nan, 0.0)[:, None].astype(dtype)
     return p + nan, q + nan
+
+
+@jit
+def _track_core(config, times, positions, quaternions, render_times):
+    return _scan_stream(TrackerConfig() if config is None else config, times, positions,
+                        quaternions, render_times)
 
 
 def _latest_states(times, states, render_times):
