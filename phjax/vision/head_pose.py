@@ -100,11 +100,13 @@ class HeadPoseStatus(enum.IntEnum):
     OK = 0
     NO_FACE = 1  #: no face box from the detector, the tracker or the depth image
     NO_DEPTH = 2  #: too little valid depth in the frame or in the face region
-    #: no usable feature / landmark correspondence and no prediction (not reported by
-    #: :class:`HeadPoseEstimator` as it stands: once a reference exists the last pose is a
-    #: prediction, and a frame without correspondences is ``ALIGNMENT_FAILED``)
+    #: no pose: too few feature matches for RANSAC and too few landmarks to the keyframe, and
+    #: the refinement from the predicted pose did not pass the checks either (blur, occlusion,
+    #: a featureless or turned-away face)
     TOO_FEW_MATCHES = 3
-    ALIGNMENT_FAILED = 4  #: the alignment did not pass the overlap / residual checks
+    #: no pose: correspondences gave a candidate, but no refined candidate passed the overlap /
+    #: residual / landmark checks
+    ALIGNMENT_FAILED = 4
     INVALID_INPUT = 5  #: colour / depth arrays of the wrong shape or type, or bad intrinsics
 
 
@@ -760,7 +762,8 @@ class HeadPoseEstimator:
                 q_keep = self._last[0] if self._confirmed and self._last is not None else None
                 self._forget_keyframes()
                 return start_reference(q_keep)
-            status = (HeadPoseStatus.ALIGNMENT_FAILED if bool(est.any_measured) or has_pred
+            # what failed: the correspondences (no RANSAC / landmark candidate) or the alignment
+            status = (HeadPoseStatus.ALIGNMENT_FAILED if bool(est.any_measured)
                       else HeadPoseStatus.TOO_FEW_MATCHES)
             timings["total"] = time.perf_counter() - t_start
             return self._result(t, status, timings=timings, **common, **info)

@@ -396,6 +396,25 @@ def test_reference_started_without_a_face_gives_way_to_a_detected_face(biwi, det
     np.testing.assert_allclose(rs[1].position, r1.position, atol=5e-3)
 
 
+def test_a_frame_without_correspondences_is_too_few_matches(biwi, detectors):
+    """A featureless grey image over a flat wall at the head's distance, after a face reference:
+    no keypoint matches and no landmarks (no RANSAC or landmark candidate), and the refinement
+    from the predicted pose fails its checks, so the frame is ``TOO_FEW_MATCHES`` (before, every
+    failed frame with a prediction was ``ALIGNMENT_FAILED``: the status was never reported), a
+    NaN pose; the next face frame is tracked again. A frame whose correspondences do give a
+    candidate but fail the checks stays ``ALIGNMENT_FAILED``
+    (test_confirmed_reference_is_replaced_after_reacquire_after_failures)."""
+    frames, gt = biwi
+    f = frames["00054"]
+    est = H.HeadPoseEstimator(f.intrinsics, detector=detectors["opencv"])
+    assert est.process_frame(f).ok
+    wall = np.where(f.depth > 0, np.median(f.depth[f.depth > 0]), 0).astype(np.float32)
+    r = est.process_frame(f._replace(color=np.full_like(f.color, 128), depth=wall))
+    assert r.status == H.HeadPoseStatus.TOO_FEW_MATCHES and not r.ok
+    assert r.num_matches == 0 and np.isnan(r.position).all() and np.isnan(r.quaternion).all()
+    assert est.process_frame(frames["00427"]).ok
+
+
 def test_confirmed_reference_is_replaced_after_reacquire_after_failures(biwi, detectors,
                                                                         monkeypatch):
     """A reference confirmed by a detected face survives failed alignments until
