@@ -43,6 +43,18 @@ def _pin_xdist_worker() -> None:
     share = len(cpus) // count
     index = int(worker[2:]) % count
     os.sched_setaffinity(0, cpus[index * share:(index + 1) * share])
+    if share == 1:
+        # XLA:CPU splits a program's LLVM module into parts compiled on parallel threads; on a
+        # single core that only adds the splitting. Measured on one core at the parallel
+        # pass's -O0: track's scan compiled in 2.7-2.9 s instead of 3.9-4.2 s, jax.grad through
+        # it 17.8-19.0 s instead of 26.6-27.9 s (with two cores at XLA's default level the
+        # split pays: 4.6 s instead of 6.8 s, so users and the serial pass keep it)
+        os.environ["XLA_FLAGS"] = " ".join(
+            [os.environ.get("XLA_FLAGS", ""), SINGLE_CORE_CODEGEN]).strip()
+
+
+#: XLA flag of a test worker pinned to one core (see _pin_xdist_worker)
+SINGLE_CORE_CODEGEN = "--xla_cpu_parallel_codegen_split_count=1"
 
 
 _pin_xdist_worker()
