@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import shutil
 import tempfile
@@ -159,6 +160,14 @@ def pytest_configure(config):
     import phjax
 
     phjax.enable_compilation_cache(os.environ[TEST_CACHE])
+    # Tracing and lowering (a fifth of the suite's time) allocate millions of short-lived
+    # objects, and Python's cyclic collector then runs every 700 allocations over the whole
+    # heap of imported modules. Fewer young-generation collections and the imported objects
+    # frozen out of the collector's scans: jax.grad of track traced and lowered in 4.9-6.7 s
+    # instead of 6.6-8.1 s (five runs each, one core). Test processes only; phjax never
+    # changes the collector of a user's process.
+    gc.freeze()
+    gc.set_threshold(50_000, 50, 50)
 
 
 def pytest_unconfigure(config):
