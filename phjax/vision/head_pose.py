@@ -748,7 +748,7 @@ class HeadPoseEstimator:
             return start_reference()
 
         # --- 4. align to the nearest keyframe
-        kf_i, est, has_pred = self._align_to_keyframe(fr, idx)
+        kf_i, est = self._align_to_keyframe(fr, idx)
         timings["jax"] = time.perf_counter() - t0
         info = {"num_matches": int(est.num_matches), "num_inliers": int(est.num_inliers),
                 "icp_inliers": int(est.icp_inliers), "icp_rmse": float(est.icp_rmse),
@@ -870,7 +870,7 @@ class HeadPoseEstimator:
 
     def _align_to_keyframe(self, fr, idx: int):
         """Align the frame to the keyframe nearest the last pose (:func:`_estimate`), with
-        the last pose as the prediction; ``(keyframe index, estimate, has_prediction)``."""
+        the last pose as the prediction; ``(keyframe index, estimate)``."""
         q_last, p_last = self._last if self._last is not None else (self._kf_quats[0], None)
         kf_i = self._nearest_keyframe(q_last)
         kf = self.keyframes[kf_i]
@@ -885,7 +885,7 @@ class HeadPoseEstimator:
         metric = "hamming" if self.config.feature_method == "orb" else "l2"
         est = _estimate(kf, fr, jnp.asarray(q_pred, np.float32), jnp.asarray(t_pred, np.float32),
                         np.bool_(has_pred), np.int32(idx), self._jcfg, metric)
-        return kf_i, jax.device_get(est), has_pred
+        return kf_i, jax.device_get(est)
 
     def _maybe_add_keyframe(self, fr, q_abs, p_abs, idx: int, has_face: bool,
                             overlap: float) -> bool:

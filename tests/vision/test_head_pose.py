@@ -433,9 +433,9 @@ def test_confirmed_reference_is_replaced_after_reacquire_after_failures(biwi, de
         fail = [True]
 
         def forced(fr, idx, real=real, fail=fail):
-            kf_i, e, has_pred = real(fr, idx)
+            kf_i, e = real(fr, idx)
             return kf_i, (eqx.tree_at(lambda x: x.accepted, e, np.bool_(False)) if fail[0]
-                          else e), has_pred
+                          else e)
 
         monkeypatch.setattr(est, "_align_to_keyframe", forced)
         statuses = [est.process_frame(frames["00427"]).status for _ in range(2)]
