@@ -237,7 +237,7 @@ _MAX_MAPPINGS = 40000
 def _bounded_memory_mappings():
     """Drop JAX's compiled functions when the process nears Linux's limit of memory mappings.
 
-    XLA:CPU maps the code of every compiled function into its own memory regions (about 1200
+    XLA:CPU maps the code of every compiled function into its own memory regions (about 260
     for one compiled tracker scan) until the function is dropped; a test worker compiles
     hundreds of functions, and one that reached ``vm.max_map_count`` crashed inside XLA's
     compiler (segfault or abort, about once per full run before this fixture).

@@ -29,7 +29,7 @@ __all__ = ["MIN_FRAMES", "MIN_RENDER", "MAX_COMPILED_SHAPES", "bounded_cache", "
 #: time step (s) between padding frames, after the last real frame and the last render time
 PAD_STEP = 1.0
 #: compiled versions (input shapes) kept per entry point, see :func:`bounded_cache`
-MAX_COMPILED_SHAPES = 4
+MAX_COMPILED_SHAPES = 16
 
 _COMPILED_KEYS: dict = {}
 
@@ -64,12 +64,15 @@ def pad_recording(times, positions, quaternions, render_times, *, hold_end: bool
 def bounded_cache(core, key) -> None:
     """Keep at most :data:`MAX_COMPILED_SHAPES` compiled versions of the jitted ``core``.
 
-    XLA:CPU maps the code of one compiled tracker scan into about 1200 memory regions
+    XLA:CPU maps the code of each compiled program into memory regions of its own
     (``/proc/self/maps``), released only with the executable; Linux allows a process 65530 of
-    them (``vm.max_map_count``), i.e. about 50 distinct shapes, then mmap fails inside XLA's
-    compiler and the process dies (reproduced with the limit lowered to 8000: a segfault at the
-    sixth shape). Before a new shape would exceed the bound, ``core``'s compilation cache is
-    cleared. Size classes make this rare: it takes recordings of five size classes.
+    them (``vm.max_map_count``), then mmap fails inside XLA's compiler and the process dies
+    (reproduced with the limit lowered to 8000). One compiled tracker scan maps 258-260 regions
+    with phjax's compiler options (fusion emitters off; jaxlib 0.10.2, 120-500 frames; ~925 with
+    them, about 1200 when the bound was 4), so the bound of 16 versions keeps one entry
+    point below ~4200 regions while a process that alternates between a few configurations
+    and size classes (a test run, a notebook) keeps them all. Before a new version would exceed
+    the bound, ``core``'s compilation cache is cleared.
     """
     keys = _COMPILED_KEYS.setdefault(core, set())
     if key not in keys and max(len(keys), core._cache_size()) >= MAX_COMPILED_SHAPES:

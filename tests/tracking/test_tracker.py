@@ -601,7 +601,7 @@ def test_bad_input_messages():
 
 def test_compiled_shapes_are_bounded(head, monkeypatch):
     """Each size class compiles the scan; at most ``MAX_COMPILED_SHAPES`` stay compiled, so
-    many classes in one process do not exhaust its memory mappings (XLA:CPU maps ~1200
+    many classes in one process do not exhaust its memory mappings (XLA:CPU maps ~260
     regions per compiled stream; Linux allows 65530), and results do not change."""
     from conftest import mapping_count
 
