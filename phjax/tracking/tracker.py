@@ -772,8 +772,7 @@ def _scan_stream(config, times, positions, quaternions, render_times):
 
 @jit
 def _track_core(config, times, positions, quaternions, render_times):
-    return _scan_stream(TrackerConfig() if config is None else config, times, positions,
-                        quaternions, render_times)
+    return _scan_stream(config, times, positions, quaternions, render_times)
 
 
 def _latest_states(times, states, render_times):
@@ -835,6 +834,9 @@ def track(
         measurement (and at padded render times).
     """
     check_config(config)
+    # the default configuration as arguments, not constants: one program for it and for any
+    # configuration of the same structure (tuned values, another horizon)
+    config = TrackerConfig() if config is None else config
     if any_traced(times, positions, quaternions, render_times):
         return _run_traced(_track_core, config, times, positions, quaternions, render_times,
                            dtype)
@@ -845,7 +847,6 @@ def track(
 
 @jit
 def _reconstruct_core(config, times, positions, quaternions, render_times):
-    config = TrackerConfig() if config is None else config
     dtype = times.dtype
     filtered, _ = kalman_filter(config.kalman, times, positions, quaternions)
     sm = rts_smooth(config.kalman, filtered)
@@ -907,6 +908,7 @@ def reconstruct(
         ``(positions (*B, M, 3), quaternions (*B, M, 4))``.
     """
     check_config(config)
+    config = TrackerConfig() if config is None else config  # arguments, as in track
     if any_traced(times, positions, quaternions, render_times):
         return _run_traced(_reconstruct_core, config, times, positions, quaternions,
                            render_times, dtype)

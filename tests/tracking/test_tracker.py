@@ -652,7 +652,7 @@ def test_lengths_in_one_size_class_share_one_program_and_equal_unpadded(head):
                 hold = fn is pj.reconstruct
                 core = tracker._reconstruct_core if hold else tracker._track_core
                 t0 = mt[0]
-                ref = core(None, *(jnp.asarray(x) for x in (mt[:n] - t0, mp[:n], mq[:n])),
+                ref = core(pj.TrackerConfig(), *(jnp.asarray(x) for x in (mt[:n] - t0, mp[:n], mq[:n])),
                            jnp.asarray((np.minimum(r, mt[n - 1]) if hold else r) - t0))
                 for a, b in zip(got, ref):
                     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)
