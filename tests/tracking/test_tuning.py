@@ -471,14 +471,15 @@ def test_loss_terms_take_batch_axes_and_nan_padding():
     stacked = jax.tree.map(lambda x: x[None], nan_padded)  # (1, 2, ...)
     cfg = pj.TrackerConfig()
 
-    @jax.jit
+    @jax.jit  # one program for all four (each call outside jit runs op by op)
     def both(a, b):
-        return tuning.loss_terms(cfg, a), tuning.loss_terms(cfg, b), tuning.tracker_loss(cfg, b)
+        return (tuning.loss_terms(cfg, a), tuning.loss_terms(cfg, b), tuning.tracker_loss(cfg, a),
+                tuning.tracker_loss(cfg, b))
 
-    terms, terms_b, loss_b = both(data, stacked)
+    terms, terms_b, loss, loss_b = both(data, stacked)
     assert terms_b.shape == (1, 2, 4) and bool(jnp.all(jnp.isfinite(terms)))
     np.testing.assert_allclose(terms_b[0], terms, rtol=1e-12)
-    np.testing.assert_allclose(loss_b, tuning.tracker_loss(cfg, data), rtol=1e-12)
+    np.testing.assert_allclose(loss_b, loss, rtol=1e-12)
     # a padded batch of ground truths prepares the same data
     padded = pj.pad_recordings(*zip(*gts))
     same = tuning.prepare_recordings(padded)
