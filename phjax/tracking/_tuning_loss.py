@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from .._jit import jit
 from .._misc import safe_div
 from ._batch import _lost_padding_frames
 from ._tuning_data import TuningData
@@ -16,12 +17,15 @@ from ._tuning_stream import stream_metrics
 from .tracker import TrackerConfig, _scan_stream
 
 
+@jit
 def loss_terms(config: TrackerConfig, data: TuningData) -> Float[Array, "*R 4"]:
     """``[E_p, E_r, J_p, J_r]`` (m, rad, m/s^3, rad/s^3) of the causal stream on each recording.
 
     ``data`` may have any leading batch axes ``R`` (e.g. ``(sweeps, recordings)``) and follow
     the NaN padding rule of :mod:`phjax.batch`: NaN measurement times are lost frames after the
     recording's end, NaN render times are masked samples (values and gradients stay finite).
+    Jitted (one program per data shape and configuration structure): called outside ``jit`` it
+    ran op by op, 15 s a call on two 3-4 s recordings instead of 0.03 s.
     """
     b = data.times.shape[:-1]
     flat = jax.tree.map(lambda x, k: x.reshape((-1,) + x.shape[x.ndim - k:]), data,
