@@ -138,8 +138,7 @@ class TrackerStream:
 
     def __init__(self, config: TrackerConfig | None = None, t: float | None = None,
                  dtype=jnp.float32, fast_start: bool = True):
-        check_config(config)
-        config = TrackerConfig() if config is None else config
+        config = check_config(config)
         state = tracker_init(config, 0.0, dtype)
         #: the time (s) the state's times are relative to (``t``, else the first update's time)
         self.origin: float | None = None if t is None else float(t)

@@ -695,13 +695,20 @@ def complete_one_part(positions: np.ndarray, quaternions: np.ndarray):
     return positions, quaternions, (orientation_only, position_only)
 
 
-def check_config(config) -> None:
-    """``TypeError`` (outside jit) unless ``config`` is a :class:`TrackerConfig` or ``None``."""
+def check_config(config) -> TrackerConfig:
+    """``TypeError`` (outside jit) unless ``config`` is a :class:`TrackerConfig` or ``None``.
+
+    Returns:
+        ``config``, or ``TrackerConfig()`` for ``None`` (passed to the jitted cores as
+        arguments like any other configuration: one program for the default and for every
+        configuration of the same structure, tuned values or another horizon).
+    """
     if config is not None and not isinstance(config, TrackerConfig):
         hint = (" (phjax.tracking.tuning.config_from_dict reads one from a dict)"
                 if isinstance(config, dict) else "")
         raise TypeError(f"config must be a phjax.TrackerConfig{hint}, got "
                         f"{type(config).__name__}")
+    return TrackerConfig() if config is None else config
 
 
 def _run_traced(core, config, times, positions, quaternions, render_times, dtype):
@@ -833,10 +840,7 @@ def track(
         ``(positions (*B, M, 3), quaternions (*B, M, 4))``; NaN before the first valid
         measurement (and at padded render times).
     """
-    check_config(config)
-    # the default configuration as arguments, not constants: one program for it and for any
-    # configuration of the same structure (tuned values, another horizon)
-    config = TrackerConfig() if config is None else config
+    config = check_config(config)
     if any_traced(times, positions, quaternions, render_times):
         return _run_traced(_track_core, config, times, positions, quaternions, render_times,
                            dtype)
@@ -907,8 +911,7 @@ def reconstruct(
     Returns:
         ``(positions (*B, M, 3), quaternions (*B, M, 4))``.
     """
-    check_config(config)
-    config = TrackerConfig() if config is None else config  # arguments, as in track
+    config = check_config(config)
     if any_traced(times, positions, quaternions, render_times):
         return _run_traced(_reconstruct_core, config, times, positions, quaternions,
                            render_times, dtype)

@@ -471,7 +471,7 @@ def test_loss_terms_take_batch_axes_and_nan_padding():
     stacked = jax.tree.map(lambda x: x[None], nan_padded)  # (1, 2, ...)
     cfg = pj.TrackerConfig()
 
-    @jax.jit  # one program for all four (each call outside jit runs op by op)
+    @jax.jit  # the four values in one program
     def both(a, b):
         return (tuning.loss_terms(cfg, a), tuning.loss_terms(cfg, b), tuning.tracker_loss(cfg, a),
                 tuning.tracker_loss(cfg, b))
