@@ -30,13 +30,13 @@ t_start = time.perf_counter()
 
 # %% [markdown]
 # ## A short recording
-# Four seconds of synthetic seated-VR head motion, sampled by the default sensor (30 Hz, 5 mm,
+# Two seconds of synthetic seated-VR head motion, sampled by the default sensor (30 Hz, 5 mm,
 # 1 degree, 5 % dropouts, fixed seed) and rendered at 120 Hz. The loss terms of every
 # configuration are divided by those of the tuned Kalman constant-velocity extrapolation on the
 # same measurements, so that baseline scores exactly `1 + lambda`.
 
 # %%
-gt = pj.synthetic_head_motion(duration=4.0, rate=120.0, seed=7)
+gt = pj.synthetic_head_motion(duration=2.0, rate=120.0, seed=7)
 data = tuning.prepare_recordings([gt], seed=0)
 # the arrays are padded to size classes (lost frames and masked render samples after the end),
 # so that recordings of other lengths reuse the compiled loss

@@ -4,7 +4,7 @@ Both have ``now()`` (seconds) and ``sleep_until(t, stop)`` (return at time ``t``
 the :class:`threading.Event` ``stop`` is set). The runner's threads only ever block in
 ``sleep_until`` (or in a camera read), so the same code runs in real time or, with
 :class:`VirtualClock`, as fast as the machine can go with exact, reproducible timing (the soak
-test replays half an hour of camera frames in well under a minute of wall time this way).
+test replays a quarter of an hour of camera frames in well under a minute of wall time this way).
 """
 
 from __future__ import annotations
