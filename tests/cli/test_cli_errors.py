@@ -296,9 +296,10 @@ def test_a_recording_too_short_to_score_is_one_line(tmp_path, capsys, command):
 
 def test_a_still_noise_free_head_evaluates(tmp_path, capsys):
     """Every method exact, every jerk 0: the verdict's ratios and the frontier plot's log
-    scale divided by zero (ZeroDivisionError); now the run completes."""
+    scale divided by zero (ZeroDivisionError); now the run completes. (5 s at 100 Hz: the size
+    classes of the other evaluate tests, whose compiled programs it shares.)"""
     src = tmp_path / "still.txt"
-    src.write_text("".join(f"{0.01 * k:.2f} 1 2 3 0 0 0 1\n" for k in range(300)))
+    src.write_text("".join(f"{0.01 * k:.2f} 1 2 3 0 0 0 1\n" for k in range(500)))
     rc, out, err = _run(capsys, ["evaluate", str(src), "--sigma-p", "0", "--sigma-r", "0",
                                  "--dropout", "0", "--plot", str(tmp_path / "p.png"),
                                  "--no-progress"])
@@ -308,9 +309,9 @@ def test_a_still_noise_free_head_evaluates(tmp_path, capsys):
 
 def test_a_plot_name_without_extension_is_written_and_named_as_png(tmp_path, capsys):
     """matplotlib appends .png to such a name; the messages (and the "replaced" note) named
-    the file without it."""
+    the file without it. (5 s at 100 Hz, as above.)"""
     src = tmp_path / "walk.txt"
-    src.write_text("".join(f"{0.01 * k:.2f} {0.002 * k} 0 0 0 0 0 1\n" for k in range(100)))
+    src.write_text("".join(f"{0.01 * k:.2f} {0.002 * k} 0 0 0 0 0 1\n" for k in range(500)))
     rc, out, err = _run(capsys, ["evaluate", str(src), "--plot", str(tmp_path / "fig"),
                                  "--no-progress"])
     assert rc == 0, err

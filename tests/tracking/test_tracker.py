@@ -617,9 +617,10 @@ def test_compiled_shapes_are_bounded(head, monkeypatch):
     monkeypatch.setattr(_shapes, "_COMPILED_KEYS", {})
 
     r = np.linspace(mt[0], mt[10], 50)
+    cv = pj.TrackerConfig(imm=None)  # the single-model filter: the same cache, a smaller program
     outs, counts = [], []
     for n in (12, 100, 200, 12):  # size classes 64, 128, 256, 64
-        outs.append(np.asarray(pj.track(mt[:n], mp[:n], mq[:n], r, dtype=jnp.float64)[0]))
+        outs.append(np.asarray(pj.track(mt[:n], mp[:n], mq[:n], r, config=cv, dtype=jnp.float64)[0]))
         counts.append(mapping_count())
         assert core._cache_size() <= 2 and len(_shapes._COMPILED_KEYS[core]) <= 2
     np.testing.assert_array_equal(outs[3], outs[0])  # recompiled after eviction: same result
