@@ -187,7 +187,7 @@ SERIAL_DIR = Path(__file__).resolve().parent / "live"
 
 def pytest_ignore_collect(collection_path, config):
     """The serial pass (``pytest -m serial``) collects only :data:`SERIAL_DIR`: importing and
-    collecting the other 1 100 tests only to deselect them cost it about 5 s of its ~80 s.
+    collecting the other 1 100 tests only to deselect them cost it about 7 s of its ~80 s.
     ``pytest_collection_modifyitems`` checks in every other run that no ``serial`` test lives
     elsewhere (it would silently never run)."""
     if config.getoption("markexpr", "") != SERIAL or collection_path.is_dir():

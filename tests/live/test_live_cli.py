@@ -40,8 +40,8 @@ def _gt_opentrack(times):
     return np.array([opentrack_values(np.zeros(3), q)[3:] for q in rel[i]])
 
 
-#: frames of the rendered head in the acceptance run: 4 s at 30 Hz, frames 0 ... 120 (6 s, as
-#: until 2026-11-30, cost the serial pass 7 s more, most of it rendering the 60 frames)
+#: frames of the rendered head in the acceptance run: 4 s at 30 Hz, frames 0 ... 120 (with 6 s,
+#: as until 2026-11-30, the test took 43 s instead of 29, most of it rendering the 60 frames)
 ACCEPTANCE_FRAMES = 121
 
 
