@@ -34,6 +34,20 @@ except ImportError:  # pragma: no cover - depends on the JAX version
     def _top_level() -> bool:
         return not isinstance(jax.numpy.zeros(()), jax.core.Tracer)
 
+try:  # the persistent cache's write threshold, settable for one thread (private; no fallback)
+    from jax._src.config import persistent_cache_min_compile_time_secs as _min_cache_time
+except ImportError:  # pragma: no cover - depends on the JAX version
+    _min_cache_time = None
+
+
+def _no_cache_writes():
+    """A block in which this thread's compilations read JAX's persistent compilation cache
+    but never write it (the threshold of compile time for a write is infinite in this thread
+    only; other threads keep theirs). Without the private setting: no change."""
+    if _min_cache_time is None:  # pragma: no cover - depends on the JAX version
+        return contextlib.nullcontext()
+    return _min_cache_time(float("inf"))
+
 __all__ = ["COMPILER_OPTIONS", "FAST_COMPILER_OPTIONS", "IMAGE_COMPILER_OPTIONS", "Tiered",
            "extra_compiler_options", "filter_jit", "jit"]
 
@@ -185,8 +199,10 @@ class Tiered:
     60 % of the time and runs about 20 % slower) and starts a thread that compiles the same
     lowered program with :data:`COMPILER_OPTIONS`; later calls use whichever program is newest.
     The background compilation runs in XLA without Python's lock (measured: a Python loop in
-    the calling thread kept running with p99 gaps of 0.04 ms), and a process that exits before
-    it ends waits for it. Calls with another input signature (other dtypes or shapes) take
+    the calling thread kept running with p99 gaps of 0.04 ms) and reads JAX's persistent
+    compilation cache but does not write it (serialising the program for the cache holds the
+    lock for 130-200 ms, a stall of a live render loop), and a process that exits before it
+    ends waits for it. Calls with another input signature (other dtypes or shapes) take
     the plain jitted path, which also reports bad inputs. On other backends, or when
     ``XLA_FLAGS`` already compiles at ``-O0``, it is the plain jitted function.
 
@@ -242,7 +258,14 @@ class Tiered:
 
         def optimise():
             try:
-                self._program = lowered.compile(COMPILER_OPTIONS)
+                # Writing the program to JAX's persistent compilation cache serialises it
+                # while holding Python's lock: 130-200 ms for the tracker update, which
+                # stalled a live render loop for 16-25 periods at 120 Hz on the first run
+                # with an empty cache. So the optimised program is compiled here on every
+                # run (the tracker update: 3-4 s of one core, while the fast one serves);
+                # the cache is still read.
+                with _no_cache_writes():
+                    self._program = lowered.compile(COMPILER_OPTIONS)
             # pragma: no cover - XLA failing on a program it compiled; the fast one runs on
             except Exception as e:  # noqa: BLE001
                 self.error = e

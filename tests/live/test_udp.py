@@ -444,57 +444,74 @@ def _free_udp_port() -> int:
     return port
 
 
-def _run_cli(extra, plan, rows):
-    """Start ``phjax live udp://...`` in a process, send ``rows`` to it at the ``plan`` times
-    (with malformed datagrams mixed in), stop it with SIGTERM. Returns ``(t0: the start of the
+def _run_clis(extras, plan, rows):
+    """Start one ``phjax live udp://...`` process per entry of ``extras`` (its extra options),
+    all at once, send ``rows`` to each at the ``plan`` times (with malformed datagrams mixed
+    in), stop them with SIGTERM. Running them side by side halves the test's time (two 120 Hz
+    live processes are a light load on 2 cores). Returns per process ``(t0: the start of the
     plan on the perf_counter clock, arrival times, received datagrams, injected counts,
     stderr)``."""
-    in_port = _free_udp_port()
-    out = UdpListener()
-    cmd = [sys.executable, "-m", "phjax", "live", f"udp://127.0.0.1:{in_port}", "--output",
-           f"opentrack://127.0.0.1:{out.port}", "--rate", str(RATE), "--duration", "300",
-           "--status-interval", "1", *extra]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    err_lines: list[str] = []
+    runs = []
+    for extra in extras:
+        in_port = _free_udp_port()
+        out = UdpListener()
+        cmd = [sys.executable, "-m", "phjax", "live", f"udp://127.0.0.1:{in_port}", "--output",
+               f"opentrack://127.0.0.1:{out.port}", "--rate", str(RATE), "--duration", "300",
+               "--status-interval", "1", *extra]
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        err_lines: list[str] = []
 
-    def read_stderr():
-        for line in proc.stderr:
-            err_lines.append(line)  # noqa: PERF402 (read while the process runs)
+        def read_stderr(proc=proc, err_lines=err_lines):
+            for line in proc.stderr:
+                err_lines.append(line)  # noqa: PERF402 (read while the process runs)
 
-    reader = threading.Thread(target=read_stderr, daemon=True)
-    reader.start()
+        reader = threading.Thread(target=read_stderr, daemon=True)
+        reader.start()
+        runs.append((in_port, out, proc, err_lines, reader))
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     injected = {"wrong size": 0, "non-finite": 0, "out of range": 0}
     try:
-        started = _wait(lambda: any(ln.startswith("phjax live: opentrack UDP")
-                                    for ln in err_lines) or proc.poll() is not None, 300)
-        assert started and proc.poll() is None, "".join(err_lines)
+        for _, _, proc, err_lines, _ in runs:
+            started = _wait(lambda proc=proc, err_lines=err_lines: any(
+                ln.startswith("phjax live: opentrack UDP") for ln in err_lines)
+                or proc.poll() is not None, 300)
+            assert started and proc.poll() is None, "".join(err_lines)
         t0 = time.perf_counter() + 0.05
         clock = RealClock()
+        ports = [("127.0.0.1", run[0]) for run in runs]
         for i, (ti, row) in enumerate(zip(plan, rows)):
             clock.sleep_until(t0 + ti)
-            tx.sendto(PACK.pack(*row), ("127.0.0.1", in_port))
+            data = PACK.pack(*row)
+            for port in ports:
+                tx.sendto(data, port)
             if i % BAD_EVERY == BAD_EVERY - 1:
-                reason, data = BAD[(i // BAD_EVERY) % len(BAD)]
-                tx.sendto(data, ("127.0.0.1", in_port))
+                reason, bad = BAD[(i // BAD_EVERY) % len(BAD)]
+                for port in ports:
+                    tx.sendto(bad, port)
                 injected[reason] += 1
         time.sleep(0.2)
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(timeout=60)
+        for _, _, proc, _, _ in runs:
+            proc.send_signal(signal.SIGTERM)
+        for _, _, proc, _, _ in runs:
+            proc.wait(timeout=60)
     finally:
         tx.close()
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        reader.join(10)
-        proc.stdout.close()
-        proc.stderr.close()
-        out.close()
-    err = "".join(err_lines)
-    assert proc.returncode == 0, err
-    arrivals = np.array([a for a, _ in out.packets])
-    data = [d for _, d in out.packets]
-    return t0, arrivals, data, injected, err
+        for _, out, proc, _, reader in runs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            reader.join(10)
+            proc.stdout.close()
+            proc.stderr.close()
+            out.close()
+    results = []
+    for _, out, proc, err_lines, _ in runs:
+        err = "".join(err_lines)
+        assert proc.returncode == 0, err
+        arrivals = np.array([a for a, _ in out.packets])
+        data = [d for _, d in out.packets]
+        results.append((t0, arrivals, data, injected, err))
+    return results
 
 
 def _lag_fit(ref_t, ref, arrivals, got, cols):
@@ -535,8 +552,9 @@ def test_recording_through_phjax_live_udp():
     plan, rows = _opentrack_plan(times, vals)
     n_frames = len(np.unique(rows, axis=0))
     results = {}
-    for name, extra in (("plain", []), ("lookahead", ["--lookahead", "50", "--center"])):
-        t0, arrivals, data, injected, err = _run_cli(extra, plan, rows)
+    runs = {"plain": [], "lookahead": ["--lookahead", "50", "--center"]}
+    for name, (t0, arrivals, data, injected, err) in zip(runs, _run_clis(runs.values(), plan,
+                                                                          rows)):
         assert "Traceback" not in err
         assert {len(d) for d in data} == {48}
         got = np.array([PACK.unpack(d) for d in data])
