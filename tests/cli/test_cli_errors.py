@@ -294,26 +294,18 @@ def test_a_recording_too_short_to_score_is_one_line(tmp_path, capsys, command):
     assert not (tmp_path / "p.png").exists()
 
 
-def test_a_still_noise_free_head_evaluates(tmp_path, capsys):
+def test_a_still_noise_free_head_evaluates_and_a_plot_name_gets_png(tmp_path, capsys):
     """Every method exact, every jerk 0: the verdict's ratios and the frontier plot's log
-    scale divided by zero (ZeroDivisionError); now the run completes. (5 s at 100 Hz: the size
-    classes of the other evaluate tests, whose compiled programs it shares.)"""
+    scale divided by zero (ZeroDivisionError); now the run completes. And a plot name without
+    extension: matplotlib appends .png to it, and the messages (and the "replaced" note) named
+    the file without it. (One run for both: 5 s at 100 Hz, the size classes of the other
+    evaluate tests, whose compiled programs it shares.)"""
     src = tmp_path / "still.txt"
     src.write_text("".join(f"{0.01 * k:.2f} 1 2 3 0 0 0 1\n" for k in range(500)))
     rc, out, err = _run(capsys, ["evaluate", str(src), "--sigma-p", "0", "--sigma-r", "0",
-                                 "--dropout", "0", "--plot", str(tmp_path / "p.png"),
+                                 "--dropout", "0", "--plot", str(tmp_path / "fig"),
                                  "--no-progress"])
     assert rc == 0, err
-    assert "Traceback" not in err and (tmp_path / "p.png").is_file()
-
-
-def test_a_plot_name_without_extension_is_written_and_named_as_png(tmp_path, capsys):
-    """matplotlib appends .png to such a name; the messages (and the "replaced" note) named
-    the file without it. (5 s at 100 Hz, as above.)"""
-    src = tmp_path / "walk.txt"
-    src.write_text("".join(f"{0.01 * k:.2f} {0.002 * k} 0 0 0 0 0 1\n" for k in range(500)))
-    rc, out, err = _run(capsys, ["evaluate", str(src), "--plot", str(tmp_path / "fig"),
-                                 "--no-progress"])
-    assert rc == 0, err
+    assert "Traceback" not in err
     assert f"frontier plot written to {tmp_path / 'fig.png'}" in out
     assert (tmp_path / "fig.png").is_file() and (tmp_path / "fig_methods.png").is_file()
