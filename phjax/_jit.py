@@ -34,7 +34,7 @@ except ImportError:  # pragma: no cover - depends on the JAX version
     def _top_level() -> bool:
         return not isinstance(jax.numpy.zeros(()), jax.core.Tracer)
 
-try:  # the persistent cache's write threshold, settable for one thread (private; no fallback)
+try:  # the persistent cache's write threshold, settable per thread (private)
     from jax._src.config import persistent_cache_min_compile_time_secs as _min_cache_time
 except ImportError:  # pragma: no cover - depends on the JAX version
     _min_cache_time = None
@@ -259,9 +259,9 @@ class Tiered:
         def optimise():
             try:
                 # Writing the program to JAX's persistent compilation cache serialises it
-                # while holding Python's lock: 130-200 ms for the tracker update, which
-                # stalled a live render loop for 16-25 periods at 120 Hz on the first run
-                # with an empty cache. So the optimised program is compiled here on every
+                # while holding Python's lock: 130-200 ms for the tracker update, and
+                # phjax live's render loop sent nothing for 150-390 ms (18-47 periods at
+                # 120 Hz) on a first run with an empty cache. So the optimised program is compiled here on every
                 # run (the tracker update: 3-4 s of one core, while the fast one serves);
                 # the cache is still read.
                 with _no_cache_writes():

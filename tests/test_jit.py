@@ -238,9 +238,9 @@ print(json.dumps({"before": entries, "after": len(os.listdir(sys.argv[1])),
 def test_the_background_compilation_never_holds_a_render_loop(tmp_path):
     """With JAX's persistent compilation cache on (the CLI's default), the background
     compilation wrote the optimised tracker program to the cache from its thread, and
-    serialising it held Python's lock: a loop in the calling thread stalled 100-133 ms (a
-    live render loop: 16-25 periods at 120 Hz, once, on a first run). It now reads the cache
-    but writes nothing (measured: largest gap 5-8 ms, alone on one core or on two)."""
+    serialising it held Python's lock: a loop in the calling thread stalled 100-133 ms
+    (phjax live's render loop: 150-390 ms, once, on a first run). It now reads the cache but
+    writes nothing (measured: largest gap 5-8 ms, alone on one core or on two)."""
     import json
     import subprocess
     import sys
