@@ -142,3 +142,36 @@ def test_wrong_last_axis_is_a_clear_error_and_integers_are_floats():
         jax.jit(pj.quat_log)(np.ones(3))
     np.testing.assert_array_equal(np.asarray(pj.quat_normalize(np.array([2, 0, 0, 0]))),
                                   [1.0, 0, 0, 0])
+
+
+def test_each_function_is_one_compiled_program_when_called_eagerly():
+    """Called outside ``jit``, a function runs as one compiled program per input shape: before,
+    its 10-30 array operations were each dispatched (and, for a new shape, compiled) on their
+    own (measured, float32, one pair: ``quat_geodesic_distance`` took 3.2 ms a call and 1.6 s
+    for the first, jitted 14 us and 0.46 s). A second call compiles nothing."""
+    compiles = []
+
+    def listener(name, _duration, **_):
+        if name == "/jax/core/compile/backend_compile_duration":
+            compiles.append(name)
+
+    rng = np.random.default_rng(0)
+    q, r = rng.normal(size=(2, 3, 7, 4))  # a batch shape no other test uses
+    v, m = rng.normal(size=(3, 7, 3)), np.asarray(pj.quat_to_matrix(q))
+    calls = [(pj.quat_mul, (q, r)), (pj.quat_conj, (q,)), (pj.quat_inv, (q,)),
+             (pj.quat_normalize, (q,)), (pj.quat_rotate, (q, v)), (pj.quat_sandwich, (q, v, r)),
+             (pj.quat_to_matrix, (r,)), (pj.quat_from_matrix, (m,)), (pj.quat_exp, (v,)),
+             (pj.quat_log, (q,)), (pj.quat_from_rotvec, (v,)), (pj.quat_to_rotvec, (q,)),
+             (pj.quat_slerp, (q, r, np.full((3, 7), 0.3))), (pj.quat_geodesic_distance, (q, r)),
+             (pj.quat_hemisphere_continuity, (q,))]
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        for fn, args in calls:
+            before = len(compiles)
+            first = np.asarray(fn(*args))
+            assert len(compiles) - before <= 1, fn.__name__  # (0: compiled by another test)
+            before = len(compiles)
+            np.testing.assert_array_equal(np.asarray(fn(*args)), first)
+            assert len(compiles) == before, fn.__name__
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
