@@ -261,9 +261,9 @@ class Tiered:
                 # Writing the program to JAX's persistent compilation cache serialises it
                 # while holding Python's lock: 130-200 ms for the tracker update, and
                 # phjax live's render loop sent nothing for 150-390 ms (18-47 periods at
-                # 120 Hz) on a first run with an empty cache. So the optimised program is compiled here on every
-                # run (the tracker update: 3-4 s of one core, while the fast one serves);
-                # the cache is still read.
+                # 120 Hz) on a first run with an empty cache. So the optimised program is
+                # compiled here on every run (the tracker update: 3-4 s of one core, while
+                # the fast one serves); the cache is still read.
                 with _no_cache_writes():
                     self._program = lowered.compile(COMPILER_OPTIONS)
             # pragma: no cover - XLA failing on a program it compiled; the fast one runs on

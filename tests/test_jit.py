@@ -121,11 +121,22 @@ np.save(sys.argv[1], np.concatenate([np.asarray(out[0]), np.asarray(out[1])], -1
 """
 
 
+def _users_environment() -> dict:
+    """This process's environment for a Python process that compiles as users do: without
+    the suite's ``-O0`` (tests/conftest.py) and without the run's shared compilation cache
+    (it compiles its programs rather than loading another process's)."""
+    from conftest import TEST_OPT_LEVEL
+
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = env.get("XLA_FLAGS", "").replace(TEST_OPT_LEVEL, "").strip()
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    return env
+
+
 def test_the_suites_optimisation_level_does_not_change_results(tmp_path):
     """The parallel test pass compiles with LLVM's optimisations off (tests/conftest.py, for
     compile time); users run XLA's default level. A recording tracked both ways (float64, lost
     frames, a fresh process each) agrees to 1e-12 m / quaternion units (measured: 1.4e-15)."""
-    import os
     import subprocess
     import sys
 
@@ -133,10 +144,8 @@ def test_the_suites_optimisation_level_does_not_change_results(tmp_path):
 
     results = {}
     for name, flags in (("default", ""), ("suite", TEST_OPT_LEVEL)):
-        env = dict(os.environ)
-        base = env.get("XLA_FLAGS", "").replace(TEST_OPT_LEVEL, "").strip()
-        env["XLA_FLAGS"] = f"{base} {flags}".strip()
-        env.pop("JAX_COMPILATION_CACHE_DIR", None)  # compile, do not load the other's program
+        env = _users_environment()  # each compiles; neither loads the other's program
+        env["XLA_FLAGS"] = f"{env['XLA_FLAGS']} {flags}".strip()
         out = tmp_path / f"{name}.npy"
         subprocess.run([sys.executable, "-c", _TRACK_SCRIPT, str(out)], env=env, check=True,
                        timeout=300)
@@ -205,13 +214,8 @@ def test_a_process_exiting_during_the_background_compilation_ends_cleanly():
     import subprocess
     import sys
 
-    from conftest import TEST_OPT_LEVEL
-
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = env.get("XLA_FLAGS", "").replace(TEST_OPT_LEVEL, "").strip()
-    env.pop("JAX_COMPILATION_CACHE_DIR", None)
-    r = subprocess.run([sys.executable, "-c", _EXIT_SCRIPT], env=env, capture_output=True,
-                       check=False, text=True, timeout=300)
+    r = subprocess.run([sys.executable, "-c", _EXIT_SCRIPT], env=_users_environment(),
+                       capture_output=True, check=False, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "optimized before exit: False" in r.stdout  # it did exit during the compilation
     assert "terminate" not in r.stderr
@@ -245,14 +249,10 @@ def test_the_background_compilation_never_holds_a_render_loop(tmp_path):
     import subprocess
     import sys
 
-    from conftest import TEST_OPT_LEVEL
-
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = env.get("XLA_FLAGS", "").replace(TEST_OPT_LEVEL, "").strip()
-    env.pop("JAX_COMPILATION_CACHE_DIR", None)
     cache = tmp_path / "jax-cache"
-    r = subprocess.run([sys.executable, "-c", _STALL_SCRIPT, str(cache)], env=env,
-                       capture_output=True, check=False, text=True, timeout=300)
+    r = subprocess.run([sys.executable, "-c", _STALL_SCRIPT, str(cache)],
+                       env=_users_environment(), capture_output=True, check=False, text=True,
+                       timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads(r.stdout.strip().splitlines()[-1])
     assert res["before"] >= 1 and res["loops"] > 100, res  # the cache is on and was in use

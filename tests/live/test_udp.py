@@ -12,6 +12,7 @@ import subprocess
 import sys
 import threading
 import time
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -444,6 +445,16 @@ def _free_udp_port() -> int:
     return port
 
 
+class _LiveRun(NamedTuple):
+    """One ``phjax live udp://...`` process of :func:`_run_clis` and what reads its output."""
+
+    in_port: int
+    out: UdpListener
+    proc: subprocess.Popen
+    err_lines: list
+    reader: threading.Thread
+
+
 def _run_clis(extras, plan, rows):
     """Start one ``phjax live udp://...`` process per entry of ``extras`` (its extra options),
     all at once, send ``rows`` to each at the ``plan`` times (with malformed datagrams mixed
@@ -467,18 +478,18 @@ def _run_clis(extras, plan, rows):
 
         reader = threading.Thread(target=read_stderr, daemon=True)
         reader.start()
-        runs.append((in_port, out, proc, err_lines, reader))
+        runs.append(_LiveRun(in_port, out, proc, err_lines, reader))
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     injected = {"wrong size": 0, "non-finite": 0, "out of range": 0}
     try:
-        for _, _, proc, err_lines, _ in runs:
-            started = _wait(lambda proc=proc, err_lines=err_lines: any(
-                ln.startswith("phjax live: opentrack UDP") for ln in err_lines)
-                or proc.poll() is not None, 300)
-            assert started and proc.poll() is None, "".join(err_lines)
+        for run in runs:
+            started = _wait(lambda run=run: any(
+                ln.startswith("phjax live: opentrack UDP") for ln in run.err_lines)
+                or run.proc.poll() is not None, 300)
+            assert started and run.proc.poll() is None, "".join(run.err_lines)
         t0 = time.perf_counter() + 0.05
         clock = RealClock()
-        ports = [("127.0.0.1", run[0]) for run in runs]
+        ports = [("127.0.0.1", run.in_port) for run in runs]
         for i, (ti, row) in enumerate(zip(plan, rows)):
             clock.sleep_until(t0 + ti)
             data = PACK.pack(*row)
@@ -490,26 +501,26 @@ def _run_clis(extras, plan, rows):
                     tx.sendto(bad, port)
                 injected[reason] += 1
         time.sleep(0.2)
-        for _, _, proc, _, _ in runs:
-            proc.send_signal(signal.SIGTERM)
-        for _, _, proc, _, _ in runs:
-            proc.wait(timeout=60)
+        for run in runs:
+            run.proc.send_signal(signal.SIGTERM)
+        for run in runs:
+            run.proc.wait(timeout=60)
     finally:
         tx.close()
-        for _, out, proc, _, reader in runs:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
-            reader.join(10)
-            proc.stdout.close()
-            proc.stderr.close()
-            out.close()
+        for run in runs:
+            if run.proc.poll() is None:
+                run.proc.kill()
+                run.proc.wait()
+            run.reader.join(10)
+            run.proc.stdout.close()
+            run.proc.stderr.close()
+            run.out.close()
     results = []
-    for _, out, proc, err_lines, _ in runs:
-        err = "".join(err_lines)
-        assert proc.returncode == 0, err
-        arrivals = np.array([a for a, _ in out.packets])
-        data = [d for _, d in out.packets]
+    for run in runs:
+        err = "".join(run.err_lines)
+        assert run.proc.returncode == 0, err
+        arrivals = np.array([a for a, _ in run.out.packets])
+        data = [d for _, d in run.out.packets]
         results.append((t0, arrivals, data, injected, err))
     return results
 
