@@ -7,6 +7,10 @@ readers
 - sort the samples by time (stable; a :class:`TrajectoryWarning` says how many were out of order),
 - drop samples whose timestamp exactly repeats an earlier one (keeping the first in file order,
   with a warning that says how many were dropped),
+- warn (:class:`TrajectoryUnitWarning`) when the times or positions look like another unit than
+  seconds and metres: a median interval between poses outside 0.1 ms - 1 s (milliseconds or
+  nanoseconds read as seconds), a median speed above 20 m/s (millimetres or centimetres read as
+  metres); the values are used as read,
 - normalise the quaternions and flip signs so that consecutive quaternions have non-negative dot
   products (``q`` and ``-q`` are the same rotation; interpolators need the continuous choice),
 - raise :class:`TrajectoryFormatError` (a ``ValueError``) for malformed input, naming the file,
@@ -30,8 +34,9 @@ Formats
 ``read_euroc``            EuRoC / TUM-VI CSV: ``t, px, py, pz, qw, qx, qy, qz`` with a ``#`` header;
                           ``t`` integer **nanoseconds**, metres, quaternion **scalar first**;
                           also EuRoC's 17-column state estimate (velocity, biases ignored).
-``read_csv``              phjax plain CSV with a header naming the columns ``t,x,y,z,qw,qx,qy,qz``
-                          (any order; ``x,y,z`` may be omitted together); seconds, metres, wxyz.
+``read_csv``              CSV with a header naming the columns ``t,x,y,z,qw,qx,qy,qz`` (phjax's own;
+                          any order, common spellings such as ``timestamp,tx,ty,tz,qx,qy,qz,qw``;
+                          ``x,y,z`` may be omitted together); seconds, metres.
 ``read_corbillon``        Corbillon et al. (MMSys 2018) head traces: header
                           ``timestamp viewpoint w x y z``; seconds, quaternion scalar first;
                           orientation only (``viewpoint`` is discarded).
@@ -85,6 +90,7 @@ __all__ = [
     "Trajectory",
     "TrajectoryFormatError",
     "TrajectoryWarning",
+    "TrajectoryUnitWarning",
     "read_tum",
     "read_euroc",
     "read_csv",
@@ -177,7 +183,7 @@ class Trajectory(NamedTuple):
             quaternions normalised and hemisphere-continuous.
         """
         t, p, q = _validate_arrays(times, positions, quaternions)
-        return _canonicalise(t, p, q, "<arrays>")
+        return _canonicalise(t, p, q, "<arrays>", check_units=False)
 
 
 class TrajectoryFormatError(ValueError):
@@ -195,7 +201,14 @@ class TrajectoryFormatError(ValueError):
 
 
 class TrajectoryWarning(UserWarning):
-    """Recoverable irregularities in a trajectory file (unsorted or duplicate timestamps)."""
+    """Recoverable irregularities in a trajectory file (unsorted or duplicate timestamps, times
+    or positions that look like another unit)."""
+
+
+class TrajectoryUnitWarning(TrajectoryWarning):
+    """A file's times or positions look like another unit than seconds and metres (see the
+    module docs); the values are used as read. Filter this category to silence it for data
+    that really is that slow, fast or large."""
 
 
 def _err(path: PathLike, line: int | None, what: str) -> TrajectoryFormatError:
@@ -304,8 +317,44 @@ def split_trajectory_name(spec: PathLike) -> tuple[str, str | None]:
     return spec, None
 
 
-def _canonicalise(t: np.ndarray, p: np.ndarray, q: np.ndarray, source: str) -> Trajectory:
-    """Sort by time, drop duplicate times, normalise and make quaternions continuous."""
+#: median interval between poses (s) outside which a file's times are taken for another unit
+_INTERVAL_RANGE = (1e-4, 1.0)
+#: median speed (m/s) above which a file's positions are taken for millimetres or centimetres:
+#: heads and hand-held cameras move at 0.03-1.2 m/s (median) in every recording of
+#: ``../shared/data``; the same motion in centimetres is 3-120 "m/s"
+_SPEED_LIMIT = 20.0
+
+
+def _unit_warnings(t: np.ndarray, p: np.ndarray, source: str) -> None:
+    """A :class:`TrajectoryUnitWarning` when the sorted times or the positions look like another
+    unit than the seconds and metres the file is read in: the median interval between poses
+    outside 0.1 ms - 1 s (milliseconds or nanoseconds read as seconds make a 30 Hz tracker a
+    0.03 Hz or 3e7 Hz one) or a median speed above 20 m/s (millimetres or centimetres)."""
+    if t.size < 3:
+        return
+    interval = float(np.median(np.diff(t)))
+    lo, hi = _INTERVAL_RANGE
+    if not lo <= interval <= hi:
+        warnings.warn(
+            f"{source}: the median interval between poses is {interval:.3g} s "
+            f"({1 / interval:.3g} Hz); times are read in seconds: are they in "
+            f"{'milliseconds or nanoseconds' if interval > hi else 'another unit'}?",
+            TrajectoryUnitWarning, stacklevel=4)
+        return  # speeds in a wrong time unit say nothing about the positions
+    ok = np.all(np.isfinite(p), axis=-1)
+    if np.count_nonzero(ok) < 3:
+        return
+    speed = float(np.median(np.linalg.norm(np.diff(p[ok], axis=0), axis=-1) / np.diff(t[ok])))
+    if speed > _SPEED_LIMIT:
+        warnings.warn(
+            f"{source}: the median speed is {speed:.3g} m/s; positions are read in metres: "
+            "are they in millimetres or centimetres?", TrajectoryUnitWarning, stacklevel=4)
+
+
+def _canonicalise(t: np.ndarray, p: np.ndarray, q: np.ndarray, source: str, *,
+                  check_units: bool = True) -> Trajectory:
+    """Sort by time, drop duplicate times, normalise and make quaternions continuous; for a
+    file (``check_units``), warn when its times or positions look like another unit."""
     n_desc = int(np.count_nonzero(np.diff(t) < 0))
     if n_desc:
         warnings.warn(
@@ -325,6 +374,8 @@ def _canonicalise(t: np.ndarray, p: np.ndarray, q: np.ndarray, source: str) -> T
             stacklevel=3,
         )
         t, p, q = t[keep], p[keep], q[keep]
+    if check_units:
+        _unit_warnings(t, p, source)
     p = np.where(np.any(np.isnan(p), axis=-1, keepdims=True), np.nan, p)
     lost = np.any(np.isnan(q), axis=-1)
     q = np.where(lost[:, None], np.nan, q)
@@ -439,15 +490,50 @@ def read_euroc(path: PathLike) -> Trajectory:
     return _canonicalise(t, p, q, os.fspath(path))
 
 
-def read_csv(path: PathLike) -> Trajectory:
-    """Read phjax's plain CSV: a header naming ``t,x,y,z,qw,qx,qy,qz`` in any order.
+#: column names ``read_csv`` accepts for each quantity, compared after lower-casing and removing
+#: everything but letters and digits (``Pos_X``, ``pos.x`` and ``pos x`` are all ``posx``)
+_CSV_ALIASES = {
+    "t": ("t", "time", "times", "timestamp", "stamp", "ts", "sec", "seconds"),
+    **{c: (c, f"t{c}", f"p{c}", f"pos{c}", f"position{c}", f"translation{c}")
+       for c in ("x", "y", "z")},
+    **{f"q{c}": (f"q{c}", f"quat{c}", f"quaternion{c}", f"orientation{c}", f"rotation{c}",
+                 f"rot{c}") for c in "wxyz"},
+}
+_CSV_ROLE = {alias: role for role, names in _CSV_ALIASES.items() for alias in names}
 
-    Column names are matched case-insensitively after stripping spaces. ``x,y,z`` may all be
-    absent (orientation only: positions become NaN); other extra columns are ignored. ``#`` lines
-    are comments.
+
+def _csv_key(name: str) -> str:
+    return "".join(ch for ch in name.lower() if ch.isalnum())
+
+
+def _csv_roles(names: list[str]) -> dict[str, int]:
+    """Column index of each quantity that ``names`` (a CSV header) holds; raises ``ValueError``
+    naming two columns that both name one quantity."""
+    found: dict[str, int] = {}
+    for i, name in enumerate(names):
+        role = _CSV_ROLE.get(_csv_key(name))
+        if role is None:
+            continue
+        if role in found:
+            raise ValueError(f"columns {names[found[role]]!r} and {name!r} both name {role!r}")
+        found[role] = i
+    return found
+
+
+def read_csv(path: PathLike) -> Trajectory:
+    """Read a CSV file with a header naming its columns (phjax's own:
+    ``t,x,y,z,qw,qx,qy,qz``), in any order.
+
+    Names are matched case-insensitively with everything but letters and digits removed, and
+    common spellings are accepted: time ``t``, ``time``, ``timestamp``, ``stamp``, ``ts``;
+    position ``x``, ``tx``, ``px``, ``pos_x``, ``position_x`` (and ``y``, ``z``); quaternion
+    ``qw``, ``quat_w``, ``orientation_w``, ``rotation_w`` (and ``x``, ``y``, ``z``). The
+    quaternion is read by name, so scalar-first and scalar-last files both work. The position
+    columns may all be absent (orientation only: positions become NaN); other columns are
+    ignored. ``#`` lines are comments.
 
     Arguments:
-        path: CSV file (seconds, metres, ``wxyz``).
+        path: CSV file (seconds, metres).
 
     Returns:
         The :class:`Trajectory`.
@@ -456,21 +542,25 @@ def read_csv(path: PathLike) -> Trajectory:
     if not data:
         raise _err(path, None, "empty file (expected a header t,x,y,z,qw,qx,qy,qz)")
     hline, header = data[0]
-    names = [c.lower() for c in _split_csv(header)]
+    names = _split_csv(header)
     dup = sorted({c for c in names if names.count(c) > 1})
     if dup:
         raise _err(path, hline, f"duplicate header column(s) {dup}")
-    have_pos = [c in names for c in ("x", "y", "z")]
+    try:
+        roles = _csv_roles(names)
+    except ValueError as e:
+        raise _err(path, hline, str(e)) from None
+    have_pos = [c in roles for c in ("x", "y", "z")]
     if any(have_pos) and not all(have_pos):
         raise _err(path, hline, "header must name all of x,y,z or none of them")
     wanted = ["t", "qw", "qx", "qy", "qz"] + (["x", "y", "z"] if all(have_pos) else [])
-    missing = [c for c in wanted if c not in names]
+    missing = [c for c in wanted if c not in roles]
     if missing:
         raise _err(
             path, hline,
             f"header {header!r} lacks column(s) {missing} (expected t,x,y,z,qw,qx,qy,qz)",
         )
-    idx = [names.index(c) for c in wanted]
+    idx = [roles[c] for c in wanted]
     body = data[1:]
     linenos = [ln for ln, _ in body]
     rows = []
@@ -833,11 +923,17 @@ def detect_format(path: PathLike) -> str:
         s = data[0]
         if "," in s:
             toks = _split_csv(s)
-            if len(toks) in (8, _EUROC_STATE_COLUMNS) and all(map(_is_number, toks)):
-                if toks[0].lstrip("+-").isdigit():
-                    return "euroc"
-            elif {"t", "qw", "qx", "qy", "qz"} <= {c.lower() for c in toks}:
+            numeric = all(map(_is_number, toks))
+            if numeric and len(toks) in (8, _EUROC_STATE_COLUMNS) and toks[0].lstrip(
+                    "+-").isdigit():
+                return "euroc"
+            if {"t", "qw", "qx", "qy", "qz"} <= {_CSV_ROLE.get(_csv_key(c)) for c in toks}:
                 return "csv"
+            if numeric and len(toks) >= 4:
+                raise _err(path, None, "comma-separated numbers without a header: name the "
+                                       "columns in a first line (t,x,y,z,qw,qx,qy,qz in any "
+                                       "order), or separate them by spaces for TUM's "
+                                       "t tx ty tz qx qy qz qw")
         else:
             toks = s.split()
             if len(toks) == 8 and all(map(_is_number, toks)):

@@ -75,8 +75,11 @@ def q_to_matrix(q):
 
 
 def no_warnings(fn, *args, **kw):
+    """``fn(*args, **kw)`` with every warning an error, except the unit check's (the drawn
+    trajectories have arbitrary times and positions; it has its own tests below)."""
     with warnings.catch_warnings():
         warnings.simplefilter("error")
+        warnings.simplefilter("ignore", io.TrajectoryUnitWarning)
         return fn(*args, **kw)
 
 
@@ -161,6 +164,7 @@ def test_roundtrip_euroc(tmp_path_factory, traj):
     check_roundtrip(traj, no_warnings(io.read_euroc, path), time_atol=1e-9)
 
 
+@pytest.mark.filterwarnings("ignore::phjax.io.TrajectoryUnitWarning")  # drawn times
 @given(trajectories(times="ns"), st.sampled_from(["tum", "csv", "euroc"]))
 def test_a_read_trajectory_written_and_read_again_is_bit_identical(tmp_path_factory, traj, fmt):
     """What phjax read (canonical: unit quaternions) survives a write and read exactly, as the
@@ -177,6 +181,7 @@ def test_a_read_trajectory_written_and_read_again_is_bit_identical(tmp_path_fact
     np.testing.assert_array_equal(again.quaternions, first.quaternions)
 
 
+@pytest.mark.filterwarnings("ignore::phjax.io.TrajectoryUnitWarning")  # drawn times
 @given(trajectories(times="ns"), st.sampled_from([".txt", ".tum", ".csv", "euroc"]))
 def test_write_trajectory_dispatch_roundtrip(tmp_path_factory, traj, kind):
     d = tmp_path_factory.mktemp("rt")
@@ -656,6 +661,9 @@ MALFORMED = [
     (io.read_euroc, "a.csv", f"{EUROC}2000000000,0,0,0,0,0,0,0\n", 3, "zero-norm"),
     (io.read_csv, "a.csv", "t,x,y,z,qw,qx,qy\n1,0,0,0,1,0,0\n", 1, r"lacks column\(s\) \['qz'\]"),
     (io.read_csv, "a.csv", "t,x,y,qw,qx,qy,qz\n1,0,0,1,0,0,0\n", 1, "all of x,y,z or none"),
+    (io.read_csv, "a.csv", "t,Time,qw,qx,qy,qz\n1,1,1,0,0,0\n", 1,
+     "columns 't' and 'Time' both name 't'"),
+    (io.read_csv, "a.csv", "time_ms,qw,qx,qy,qz\n1,1,0,0,0\n", 1, r"lacks column\(s\) \['t'\]"),
     (io.read_csv, "a.csv", f"{CSV}2,0,0,0,1,0,0\n", 3, "expected 8 columns"),
     (io.read_csv, "a.csv", f"{CSV}2,0,0,0,1,0,0,?\n", 3, r"non-numeric value '\?' in column 8"),
     (io.read_csv, "a.csv", f"{CSV}2,0,0,0,0,0,0,0\n", 3, "zero-norm"),
@@ -750,6 +758,88 @@ def test_unsorted_and_duplicate_times_are_fixed_with_warnings(tmp_path, reader, 
     np.testing.assert_allclose(tr.times, np.array([1.0, 2.0, 3.0]) * scale)
     if tr.has_positions():  # the first of the two t=1 samples (x=1, not x=9) is kept
         np.testing.assert_array_equal(tr.positions[:, 0], [1.0, 2.0, 0.0])
+
+
+#: (what is rescaled, factor, expected words of the warning): fr1_xyz as a file of another unit
+UNIT_MISTAKES = [
+    ("times", 1e3, "median interval between poses is 10 s (0.1 Hz); times are read in seconds: "
+                   "are they in milliseconds or nanoseconds?"),
+    ("times", 1e9, "1e+07 s"),
+    ("times", 1e-3, "1e-05 s (1e+05 Hz); times are read in seconds: are they in another unit?"),
+    ("positions", 1e3, "positions are read in metres: are they in millimetres or centimetres?"),
+    ("positions", 1e2, "the median speed is 3"),
+]
+
+
+@pytest.mark.parametrize("what, factor, words", UNIT_MISTAKES,
+                         ids=["ms", "ns", "10 us", "mm", "cm"])
+def test_times_or_positions_in_another_unit_warn_once(tmp_path, what, factor, words):
+    """fr1_xyz (100 Hz, median speed 0.33 m/s) written with its times in ms / ns / 10 us or
+    its positions in mm / cm: one TrajectoryUnitWarning naming the file and the suspect unit,
+    and the values are used as read."""
+    src = io.read_tum(shared_path("tum_rgbd_groundtruth", "fr1_xyz-groundtruth.txt"))
+    t, p = src.times - src.times[0], src.positions
+    t, p = (t * factor, p) if what == "times" else (t, p * factor)
+    path = tmp_path / "unit.txt"
+    io.write_tum(path, Trajectory(t, p, src.quaternions))
+    with pytest.warns(io.TrajectoryUnitWarning) as rec:
+        tr = io.read_tum(path)
+    assert len(rec) == 1, [str(w.message) for w in rec]
+    assert str(rec[0].message).startswith(f"{path}: ") and words in str(rec[0].message)
+    np.testing.assert_allclose(tr.times, t, rtol=1e-12, atol=1e-9 * abs(factor))
+    np.testing.assert_allclose(tr.positions, p, rtol=1e-12)
+
+
+@pytest.mark.parametrize("folder, pattern", [
+    ("tum_rgbd_groundtruth", "**/*.txt"), ("tum_vi_room_groundtruth", "*.csv"),
+    ("vr_corbillon_multiviewpoint360", "*.txt"), ("vr_hachaj_head_gestures", "**/*.log"),
+    ("vr_cwi_6dof_navigation", "*.csv"), ("vr_avtrack360", "*.json")])
+def test_no_real_recording_is_taken_for_another_unit(folder, pattern):
+    """Every recording of ../shared/data (median intervals 3.3-101 ms, median speeds
+    0.03-1.2 m/s) reads without a unit warning."""
+    read = {"vr_cwi_6dof_navigation": io.read_cwi,
+            "vr_avtrack360": io.read_avtrack360}.get(folder, io.read_trajectory)
+    files = sorted(shared_path(folder).glob(pattern))
+    assert files
+    for f in files:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", TrajectoryWarning)  # duplicates in two of them
+            warnings.simplefilter("error", io.TrajectoryUnitWarning)
+            read(f)
+
+
+@pytest.mark.parametrize("header, order", [
+    ("timestamp,tx,ty,tz,qx,qy,qz,qw", "tum"),  # TUM's columns, comma-separated
+    ("Time, Pos_X, pos.y, POSITION Z, quat_w, quat_x, quat_y, quat_z", "wxyz"),
+    ("# a comment\nstamp,qw,qx,qy,qz,px,py,pz,frame", "wxyz"),
+])
+def test_csv_column_names_in_common_spellings(tmp_path, header, order):
+    """A CSV whose header spells the columns as other tools do (scalar-last quaternion, other
+    names and order, an extra column) is detected as CSV and reads exactly as the same poses
+    from a TUM file."""
+    ref = io.read_tum(shared_path("tum_rgbd_groundtruth", "fr1_xyz-groundtruth.txt"))
+    t, p, q = ref.times[:50], ref.positions[:50], ref.quaternions[:50]
+    names = header.splitlines()[-1].split(",")
+    cols = {"tum": [t[:, None], p, q[:, [1, 2, 3, 0]]], "wxyz": [t[:, None], p, q]}[order]
+    table = np.concatenate(cols, axis=1)
+    if names[0].strip() == "stamp":  # stamp,q,p,frame
+        table = np.concatenate([t[:, None], q, p, np.arange(50)[:, None]], axis=1)
+    path = tmp_path / "poses.csv"
+    path.write_text(header + "\n" + "\n".join(",".join(repr(float(v)) for v in row)
+                                             for row in table) + "\n")
+    assert io.detect_format(path) == "csv"
+    got = no_warnings(io.read_trajectory, path)
+    np.testing.assert_array_equal(got.times, t)
+    np.testing.assert_array_equal(got.positions, p)
+    np.testing.assert_allclose(got.quaternions, q, rtol=0, atol=1e-15)
+
+
+def test_a_csv_of_numbers_without_a_header_says_what_to_add(tmp_path):
+    path = tmp_path / "poses.csv"
+    path.write_text("0.0,0,0,0,0,0,0,1\n0.033,0.001,0,0,0,0,0,1\n")
+    with pytest.raises(TrajectoryFormatError, match=r"poses\.csv: comma-separated numbers "
+                       r"without a header: name the columns in a first line"):
+        io.read_trajectory(path)
 
 
 def test_csv_header_any_order_and_orientation_only(tmp_path):
