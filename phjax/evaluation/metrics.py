@@ -608,8 +608,8 @@ def _finite_at_every_shift(t: np.ndarray, good: np.ndarray, lags: np.ndarray) ->
     bracketing samples finite (found for every shift, as the interpolant finds them, only when
     some sample is not finite)."""
     ok = (t - lags.max() >= t[0]) & (t - lags.min() <= t[-1])
-    if good.all():
-        return ok
+    if good.all() or not good.any():  # (an orientation-only recording's positions: none)
+        return ok & good.any()
     n = t.shape[0]
     for c in range(0, lags.size, _LAG_CHUNK):
         s = t[None, :] - lags[c:c + _LAG_CHUNK, None]
