@@ -35,8 +35,9 @@ Formats
                           ``t`` integer **nanoseconds**, metres, quaternion **scalar first**;
                           also EuRoC's 17-column state estimate (velocity, biases ignored).
 ``read_csv``              CSV with a header naming the columns ``t,x,y,z,qw,qx,qy,qz`` (phjax's own;
-                          any order, common spellings such as ``timestamp,tx,ty,tz,qx,qy,qz,qw``;
-                          ``x,y,z`` may be omitted together); seconds, metres.
+                          any order, common spellings such as ``timestamp,tx,ty,tz,qx,qy,qz,qw``,
+                          commas, semicolons or tabs; ``x,y,z`` may be omitted together);
+                          seconds, metres.
 ``read_corbillon``        Corbillon et al. (MMSys 2018) head traces: header
                           ``timestamp viewpoint w x y z``; seconds, quaternion scalar first;
                           orientation only (``viewpoint`` is discarded).
@@ -445,8 +446,13 @@ def read_tum(path: PathLike) -> Trajectory:
     return _canonicalise(t, p, q, os.fspath(path))
 
 
-def _split_csv(s: str) -> list[str]:
-    return [tok.strip() for tok in s.split(",")]
+def _split_csv(s: str, sep: str = ",") -> list[str]:
+    return [tok.strip() for tok in s.split(sep)]
+
+
+def _csv_separator(header: str) -> str:
+    """The column separator of a CSV header line: a comma, else a semicolon, else a tab."""
+    return next((sep for sep in (",", ";", "\t") if sep in header), ",")
 
 
 #: columns of EuRoC's ``state_groundtruth_estimate0/data.csv``: the 8 of the pose, then
@@ -493,7 +499,7 @@ def read_euroc(path: PathLike) -> Trajectory:
 #: column names ``read_csv`` accepts for each quantity, compared after lower-casing and removing
 #: everything but letters and digits (``Pos_X``, ``pos.x`` and ``pos x`` are all ``posx``)
 _CSV_ALIASES = {
-    "t": ("t", "time", "times", "timestamp", "stamp", "ts", "sec", "seconds"),
+    "t": ("t", "time", "times", "timestamp", "stamp", "ts", "seconds"),
     **{c: (c, f"t{c}", f"p{c}", f"pos{c}", f"position{c}", f"translation{c}")
        for c in ("x", "y", "z")},
     **{f"q{c}": (f"q{c}", f"quat{c}", f"quaternion{c}", f"orientation{c}", f"rotation{c}",
@@ -522,7 +528,8 @@ def _csv_roles(names: list[str]) -> dict[str, int]:
 
 def read_csv(path: PathLike) -> Trajectory:
     """Read a CSV file with a header naming its columns (phjax's own:
-    ``t,x,y,z,qw,qx,qy,qz``), in any order.
+    ``t,x,y,z,qw,qx,qy,qz``), in any order, separated by commas (or semicolons or tabs, as the
+    header is).
 
     Names are matched case-insensitively with everything but letters and digits removed, and
     common spellings are accepted: time ``t``, ``time``, ``timestamp``, ``stamp``, ``ts``;
@@ -542,7 +549,8 @@ def read_csv(path: PathLike) -> Trajectory:
     if not data:
         raise _err(path, None, "empty file (expected a header t,x,y,z,qw,qx,qy,qz)")
     hline, header = data[0]
-    names = _split_csv(header)
+    sep = _csv_separator(header)
+    names = _split_csv(header, sep)
     dup = sorted({c for c in names if names.count(c) > 1})
     if dup:
         raise _err(path, hline, f"duplicate header column(s) {dup}")
@@ -565,7 +573,7 @@ def read_csv(path: PathLike) -> Trajectory:
     linenos = [ln for ln, _ in body]
     rows = []
     for ln, s in body:
-        r = _split_csv(s)
+        r = _split_csv(s, sep)
         if len(r) != len(names):
             raise _err(path, ln, f"expected {len(names)} columns ({header}), found {len(r)}")
         rows.append([r[i] for i in idx])
@@ -938,6 +946,9 @@ def detect_format(path: PathLike) -> str:
             toks = s.split()
             if len(toks) == 8 and all(map(_is_number, toks)):
                 return "tum"
+            named = {_CSV_ROLE.get(_csv_key(c)) for c in _split_csv(s, _csv_separator(s))}
+            if {"t", "qw", "qx", "qy", "qz"} <= named:
+                return "csv"  # separated by semicolons or tabs
     raise _err(
         path, None,
         f"cannot detect the trajectory format from its first lines; "

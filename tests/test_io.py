@@ -808,24 +808,26 @@ def test_no_real_recording_is_taken_for_another_unit(folder, pattern):
             read(f)
 
 
-@pytest.mark.parametrize("header, order", [
-    ("timestamp,tx,ty,tz,qx,qy,qz,qw", "tum"),  # TUM's columns, comma-separated
-    ("Time, Pos_X, pos.y, POSITION Z, quat_w, quat_x, quat_y, quat_z", "wxyz"),
-    ("# a comment\nstamp,qw,qx,qy,qz,px,py,pz,frame", "wxyz"),
+@pytest.mark.parametrize("header, order, sep", [
+    ("timestamp,tx,ty,tz,qx,qy,qz,qw", "tum", ","),  # TUM's columns, comma-separated
+    ("Time, Pos_X, pos.y, POSITION Z, quat_w, quat_x, quat_y, quat_z", "wxyz", ","),
+    ("# a comment\nstamp,qw,qx,qy,qz,px,py,pz,frame", "wxyz", ","),
+    ("t;x;y;z;qw;qx;qy;qz", "wxyz", ";"),
+    ("timestamp\ttx\tty\ttz\tqx\tqy\tqz\tqw", "tum", "\t"),
 ])
-def test_csv_column_names_in_common_spellings(tmp_path, header, order):
+def test_csv_column_names_in_common_spellings(tmp_path, header, order, sep):
     """A CSV whose header spells the columns as other tools do (scalar-last quaternion, other
-    names and order, an extra column) is detected as CSV and reads exactly as the same poses
-    from a TUM file."""
+    names and order, an extra column, semicolons or tabs between them) is detected as CSV and
+    reads exactly as the same poses from a TUM file."""
     ref = io.read_tum(shared_path("tum_rgbd_groundtruth", "fr1_xyz-groundtruth.txt"))
     t, p, q = ref.times[:50], ref.positions[:50], ref.quaternions[:50]
-    names = header.splitlines()[-1].split(",")
+    names = header.splitlines()[-1].split(sep)
     cols = {"tum": [t[:, None], p, q[:, [1, 2, 3, 0]]], "wxyz": [t[:, None], p, q]}[order]
     table = np.concatenate(cols, axis=1)
     if names[0].strip() == "stamp":  # stamp,q,p,frame
         table = np.concatenate([t[:, None], q, p, np.arange(50)[:, None]], axis=1)
     path = tmp_path / "poses.csv"
-    path.write_text(header + "\n" + "\n".join(",".join(repr(float(v)) for v in row)
+    path.write_text(header + "\n" + "\n".join(sep.join(repr(float(v)) for v in row)
                                              for row in table) + "\n")
     assert io.detect_format(path) == "csv"
     got = no_warnings(io.read_trajectory, path)
