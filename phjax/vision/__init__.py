@@ -39,7 +39,14 @@ from .icp import (
     icp_point_to_plane,
     icp_projective,
 )
-from .monocular import MonocularHeadPose, MonocularResult, face_model, intrinsics_from_fov
+from .monocular import (
+    MonocularHeadPose,
+    MonocularResult,
+    face_model,
+    intrinsics_from_fov,
+    pitch_yaw_roll,
+    quaternion_from_pitch_yaw_roll,
+)
 from .rgbd_io import CameraIntrinsics, RGBDFrame, RGBDSequence, open_rgbd
 from .synthetic_rgbd import (
     HeadModel,
@@ -80,6 +87,8 @@ __all__ = [
     "icp_projective",
     "intrinsics_from_fov",
     "open_rgbd",
+    "pitch_yaw_roll",
+    "quaternion_from_pitch_yaw_roll",
     "ransac_align",
     "render_rgbd",
     "rgbd_relative_pose",

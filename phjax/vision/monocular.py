@@ -45,6 +45,8 @@ labels' pitch, yaw, roll (radians, ``Pose_Para``) and ``P = diag(1, 1, -1)``,
 
 (scipy, intrinsic axes): positive pitch = the face looks up, positive yaw = it turns towards
 the image's left (the subject's right), positive roll = it tilts clockwise in the image.
+:func:`pitch_yaw_roll` and :func:`quaternion_from_pitch_yaw_roll` convert between the two (the
+angles single-image head-pose benchmarks report their MAE in).
 Verified in ``tests/vision/test_head_pose_net.py``: against the 16 labelled images of the
 shared AFLW sample, and without labels, mirrored and rotated images change yaw / roll with
 the signs above, and the predicted facing direction agrees with the label-free nose-tip offset.
@@ -117,7 +119,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .._face_sizes import HEAD_SIZE_RANGE, IPD_RANGE  # also phjax live's ranges
-from .._np_quat import np_qconj, np_qmul, np_qnormalize
+from .._np_quat import np_axis_quat, np_qconj, np_qmul, np_qnormalize
 from .face_detection import FaceDetection, FaceDetector
 from .head_pose import HeadPoseStatus
 from .rgbd_io import CameraIntrinsics
@@ -136,6 +138,8 @@ __all__ = [
     "MonocularResult",
     "face_model",
     "intrinsics_from_fov",
+    "pitch_yaw_roll",
+    "quaternion_from_pitch_yaw_roll",
     "ray_quaternion",
 ]
 
@@ -207,6 +211,56 @@ def ray_quaternion(direction: Any) -> np.ndarray:
         return np.array([1.0, 0.0, 0.0, 0.0])
     half = 0.5 * math.atan2(s, float(d[2]))
     return np.concatenate([[math.cos(half)], math.sin(half) * axis / s])
+
+
+def _mirror_z(q: np.ndarray) -> np.ndarray:
+    """``P R P`` for ``P = diag(1, 1, -1)`` on ``wxyz`` quaternions: ``(w, -x, -y, z)``."""
+    return q * np.array([1.0, -1.0, -1.0, 1.0])
+
+
+def quaternion_from_pitch_yaw_roll(angles: Any) -> np.ndarray:
+    """Crop-relative head rotation (``wxyz``, as :attr:`MonocularResult.crop_quaternion`) of
+    head-pose angles in the AFLW2000-3D / 300W-LP label convention (module docs).
+
+    Arguments:
+        angles: ``(..., 3)`` pitch, yaw, roll in degrees (positive pitch: the face looks up;
+            yaw: it turns towards the image's left; roll: it tilts clockwise in the image).
+
+    Returns:
+        ``(..., 4)`` unit quaternions ``wxyz`` with ``w >= 0``.
+    """
+    a = np.radians(np.asarray(angles, np.float64))
+    if a.shape[-1:] != (3,):
+        raise ValueError(f"angles must have shape (..., 3) (pitch, yaw, roll), got {a.shape}")
+    q = np_qmul(np_qmul(np_axis_quat(0, a[..., 0]), np_axis_quat(1, -a[..., 1])),
+                np_axis_quat(2, a[..., 2]))
+    q = _mirror_z(q)
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def pitch_yaw_roll(quaternion: Any) -> np.ndarray:
+    """Head-pose angles in the AFLW2000-3D / 300W-LP label convention (the one Hopenet, FSA-Net
+    and 6DRepNet report MAE in) of a crop-relative head rotation: the inverse of
+    :func:`quaternion_from_pitch_yaw_roll`.
+
+    Arguments:
+        quaternion: ``(..., 4)`` ``wxyz``, e.g. :attr:`MonocularResult.crop_quaternion` (the
+            rotation as seen in the face's crop; the camera-frame ``quaternion`` adds the
+            viewing ray, which the labels of a single photo do not have). Normalised here.
+
+    Returns:
+        ``(..., 3)`` pitch, yaw, roll in degrees (yaw within +-90, pitch and roll within
+        +-180); NaN for a NaN quaternion (no pose).
+    """
+    q = np.asarray(quaternion, np.float64)
+    if q.shape[-1:] != (4,):
+        raise ValueError(f"quaternion must have shape (..., 4) (wxyz), got {q.shape}")
+    w, x, y, z = np.moveaxis(_mirror_z(np_qnormalize(q)), -1, 0)
+    # intrinsic x-y-z angles (a, b, c) of R = Rx(a) Ry(b) Rz(c), from its matrix entries
+    b = np.arcsin(np.clip(2 * (x * z + w * y), -1.0, 1.0))
+    a = np.arctan2(-2 * (y * z - w * x), 1 - 2 * (x * x + y * y))
+    c = np.arctan2(-2 * (x * y - w * z), 1 - 2 * (y * y + z * z))
+    return np.degrees(np.stack([a, -b, c], axis=-1)) + 0.0  # (no negative zeros)
 
 
 def _quat_from_matrix(r: np.ndarray) -> np.ndarray:
