@@ -193,11 +193,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--x64", action="store_true", help="compute in float64")
     p.set_defaults(func=cmd_demo_curve)
 
-    from . import _live, _rgbd, _tracking, _tune
+    from . import _head_pose, _live, _rgbd, _tracking, _tune
 
     _tracking.add_commands(sub)
     _tune.add_commands(sub)
     _rgbd.add_commands(sub)
+    _head_pose.add_commands(sub)
     _live.add_commands(sub)
     for command in sub.choices.values():  # also accepted after the command name
         command.add_argument("--no-cache", action="store_true", default=argparse.SUPPRESS,

@@ -1,0 +1,98 @@
+"""``phjax head-pose``: the monocular front-end on photos, scored against the AFLW2000-3D
+labels."""
+
+from __future__ import annotations
+
+import csv
+import shutil
+
+import numpy as np
+import pytest
+from conftest import shared_path
+from scipy.io import loadmat
+
+from phjax.cli import main
+
+pytest.importorskip("cv2", reason="the vision extra (OpenCV)")
+pytest.importorskip("onnxruntime", reason="the vision extra (onnxruntime)")
+
+#: the network's MAE pitch / yaw / roll on these photos (tests/vision/test_head_pose_net.py),
+#: with the same bound: measured + 20 % + 0.3 deg
+MEASURED_MAE = np.array([3.81, 3.17, 1.35])
+
+
+@pytest.fixture
+def models(tmp_path):
+    from phjax.vision.face_detection import seed_model_cache
+
+    cache = tmp_path / "models"
+    for folder in ("yunet_face_detection", "head_pose_models"):
+        seed_model_cache(shared_path(folder), cache)
+    return cache
+
+
+def _label_angles(mat_file) -> np.ndarray:
+    """AFLW label (pitch, yaw, roll) in degrees (the convention ``pitch_yaw_roll`` returns,
+    checked against scipy in tests/vision/test_head_pose_net.py)."""
+    return np.degrees(loadmat(mat_file)["Pose_Para"][0, :3].astype(np.float64))
+
+
+def test_a_folder_of_photos_gives_one_row_each(tmp_path, models, capsys):
+    """The 16 labelled photos and an unreadable file in one folder (a text file beside them is
+    not an image and is skipped): 16 poses whose angles have the network's accuracy against
+    the labels, one INVALID_INPUT row with a warning, the CSV equal to the printed table."""
+    src = shared_path("aflw2000_3d_sample")
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for jpg in sorted(src.glob("*.jpg")):
+        shutil.copy(jpg, photos / jpg.name)
+    (photos / "broken.png").write_bytes(b"not an image")
+    (photos / "notes.txt").write_text("skipped")
+    out = tmp_path / "poses.csv"
+    rc = main(["head-pose", str(photos), "-o", str(out), "--model-dir", str(models)])
+    printed = capsys.readouterr()
+    assert rc == 0, printed.err
+    assert "broken.png: not an image OpenCV can read" in printed.err
+    assert "16 of 17 images with a head pose" in printed.out
+    with open(out, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["image"].split("/")[-1] for r in rows] == sorted(
+        ["broken.png"] + [p.name for p in src.glob("*.jpg")])
+    broken = rows[0]
+    assert broken["status"] == "INVALID_INPUT" and broken["yaw_deg"] == "nan"
+    errs = []
+    for r in rows[1:]:
+        assert r["status"] == "OK", r
+        got = np.array([float(r[k]) for k in ("pitch_deg", "yaw_deg", "roll_deg")])
+        errs.append(np.abs(got - _label_angles(src / r["image"].split("/")[-1].replace(
+            ".jpg", ".mat"))))
+        z = float(r["z_m"])
+        assert 0.15 < z < 0.6, r  # 450 px photos at 60 degrees: faces 0.2-0.4 m away
+        assert f"{float(r['yaw_deg']):6.1f}" in printed.out
+    mae = np.mean(errs, axis=0)
+    print("MAE pitch / yaw / roll", mae.round(2))
+    assert (mae <= 1.2 * MEASURED_MAE + 0.3).all()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["head-pose", "no_such_photo.jpg"], "no_such_photo.jpg: No such file or directory"),
+    (["head-pose", "{empty}"], "no images in this folder"),
+    (["head-pose", "{photo}", "--fov", "500"],
+     "argument --fov: must be between 10 and 170 degrees, got '500'"),
+    (["head-pose", "{photo}", "--head-size", "20"], "argument --head-size"),
+    (["head-pose", "{photo}", "-o", "/nonexistent/dir/p.csv"], "/nonexistent/dir"),
+])
+def test_bad_input_is_one_line_and_status_2(tmp_path, capsys, argv, message):
+    (tmp_path / "empty").mkdir()
+    photo = shared_path("aflw2000_3d_sample", "image00050.jpg")
+    argv = [a.format(empty=tmp_path / "empty", photo=photo) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and message in err, err
+
+
+def test_missing_models_name_the_cache(tmp_path, capsys):
+    photo = shared_path("aflw2000_3d_sample", "image00050.jpg")
+    assert main(["head-pose", str(photo), "--model-dir", str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "not found in" in err and "none" in err, err
