@@ -10,7 +10,7 @@ readers
 - warn (:class:`TrajectoryUnitWarning`) when the times or positions look like another unit than
   seconds and metres: a median interval between poses outside 0.1 ms - 1 s (milliseconds or
   nanoseconds read as seconds), a median speed above 20 m/s (millimetres or centimetres read as
-  metres); the values are used as read,
+  metres), for files of 10 poses or more; the values are used as read,
 - normalise the quaternions and flip signs so that consecutive quaternions have non-negative dot
   products (``q`` and ``-q`` are the same rotation; interpolators need the continuous choice),
 - raise :class:`TrajectoryFormatError` (a ``ValueError``) for malformed input, naming the file,
@@ -324,14 +324,18 @@ _INTERVAL_RANGE = (1e-4, 1.0)
 #: heads and hand-held cameras move at 0.03-1.2 m/s (median) in every recording of
 #: ``../shared/data``; the same motion in centimetres is 3-120 "m/s"
 _SPEED_LIMIT = 20.0
+#: files with fewer poses are not checked for their units
+_UNIT_MIN_POSES = 10
 
 
 def _unit_warnings(t: np.ndarray, p: np.ndarray, source: str) -> None:
     """A :class:`TrajectoryUnitWarning` when the sorted times or the positions look like another
     unit than the seconds and metres the file is read in: the median interval between poses
     outside 0.1 ms - 1 s (milliseconds or nanoseconds read as seconds make a 30 Hz tracker a
-    0.03 Hz or 3e7 Hz one) or a median speed above 20 m/s (millimetres or centimetres)."""
-    if t.size < 3:
+    0.03 Hz or 3e7 Hz one) or a median speed above 20 m/s (millimetres or centimetres). Files
+    of fewer than :data:`_UNIT_MIN_POSES` poses are not checked (a few frames picked from a
+    sequence, as the Biwi samples' three, are far apart in time)."""
+    if t.size < _UNIT_MIN_POSES:
         return
     interval = float(np.median(np.diff(t)))
     lo, hi = _INTERVAL_RANGE
