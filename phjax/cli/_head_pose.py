@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._face_sizes import HEAD_SIZE_RANGE
+from .._face_sizes import HEAD_SIZE_RANGE, IPD_RANGE
 from ._common import check_output, float_between, replaced_note
 from ._live import FOV_RANGE
 
@@ -75,7 +75,7 @@ def cmd_head_pose(args) -> int:
         size = color.shape[:2]
         if size not in estimators:
             estimators[size] = MonocularHeadPose(
-                intrinsics_from_fov(size[1], size[0], args.fov), method=args.method,
+                intrinsics_from_fov(size[1], size[0], args.fov), args.ipd, method=args.method,
                 head_size=args.head_size, detector=detector, model_dir=args.model_dir,
                 track=False)
         rows.append(_row(image, estimators[size].process(color)))
@@ -86,9 +86,11 @@ def cmd_head_pose(args) -> int:
         pos = " ".join(f"{r[k]:6.3f}" for k in COLUMNS[5:8])
         print(f"{r['image']:<{width}}  {r['status']:<16}{angles}   {pos}")
     ok = sum(r["status"] == "OK" for r in rows)
+    size = (f"--head-size {args.head_size:g} m" if args.method == "net"
+            else f"--ipd {args.ipd:g} m")
     print(f"{ok} of {len(rows)} images with a head pose (angles: AFLW2000-3D convention, "
           f"relative to the viewing ray; position: camera frame at --fov {args.fov:g} deg, "
-          f"distance from --head-size {args.head_size:g} m)")
+          f"distance from {size})")
     if args.output:
         note = replaced_note(args.output)
         with open(args.output, "w", newline="", encoding="utf-8") as f:
@@ -102,7 +104,7 @@ def cmd_head_pose(args) -> int:
 
 
 def add_commands(sub) -> None:
-    from ..vision.monocular import DEFAULT_HEAD_SIZE, METHODS
+    from ..vision.monocular import DEFAULT_HEAD_SIZE, DEFAULT_IPD, METHODS
 
     p = sub.add_parser(
         "head-pose", help="head pose from photos (colour only), one row per image",
@@ -128,8 +130,11 @@ def add_commands(sub) -> None:
                    "the position only")
     p.add_argument("--head-size", type=float_between(*HEAD_SIZE_RANGE, "m"),
                    default=DEFAULT_HEAD_SIZE,
-                   help=f"assumed vertical head size, m (default {DEFAULT_HEAD_SIZE:g}); sets "
-                   "the distance only")
+                   help=f"assumed vertical head size, m (default {DEFAULT_HEAD_SIZE:g}; net "
+                   "method); sets the distance only")
+    p.add_argument("--ipd", type=float_between(*IPD_RANGE, "m"), default=DEFAULT_IPD,
+                   help=f"assumed inter-pupillary distance, m (default {DEFAULT_IPD:g}; "
+                   "landmarks method); sets the distance only")
     p.add_argument("--model-dir", default=None,
                    help="model cache folder (default $PHJAX_MODEL_DIR or ~/.cache/phjax/models)")
     p.add_argument("--download-models", action="store_true",

@@ -80,6 +80,7 @@ def test_a_folder_of_photos_gives_one_row_each(tmp_path, models, capsys):
     (["head-pose", "{photo}", "--fov", "500"],
      "argument --fov: must be between 10 and 170 degrees, got '500'"),
     (["head-pose", "{photo}", "--head-size", "20"], "argument --head-size"),
+    (["head-pose", "{photo}", "--ipd", "63"], "argument --ipd: must be between 0.03 and 0.1 m"),
     (["head-pose", "{photo}", "-o", "/nonexistent/dir/p.csv"], "/nonexistent/dir"),
 ])
 def test_bad_input_is_one_line_and_status_2(tmp_path, capsys, argv, message):
