@@ -63,34 +63,34 @@ def cmd_head_pose(args) -> int:
             model_path(model, args.model_dir, download=True)
     detector = FaceDetector("opencv", model_dir=args.model_dir)
     estimators: dict[tuple[int, int], MonocularHeadPose] = {}  # one per image size
+    width = max(len(str(image)) for image in images)
+    print(f"{'image':<{width}}  {'status':<16} pitch    yaw   roll [deg]   x      y      z [m]")
     rows = []
-    for image in images:
+    for image in images:  # each row printed as it is done (a folder may hold thousands)
         color = cv2.imread(str(image), cv2.IMREAD_COLOR)
         if color is None:
             print(f"phjax: warning: {image}: not an image OpenCV can read", file=sys.stderr)
-            nan = np.full(3, np.nan)
-            rows.append(_row(image, MonocularResult(0.0, nan, np.full(4, np.nan),
-                                                    HeadPoseStatus.INVALID_INPUT)))
-            continue
-        size = color.shape[:2]
-        if size not in estimators:
-            estimators[size] = MonocularHeadPose(
-                intrinsics_from_fov(size[1], size[0], args.fov), args.ipd, method=args.method,
-                head_size=args.head_size, detector=detector, model_dir=args.model_dir,
-                track=False)
-        rows.append(_row(image, estimators[size].process(color)))
-    width = max(len(r["image"]) for r in rows)
-    print(f"{'image':<{width}}  {'status':<16} pitch    yaw   roll [deg]   x      y      z [m]")
-    for r in rows:
+            result = MonocularResult(0.0, np.full(3, np.nan), np.full(4, np.nan),
+                                     HeadPoseStatus.INVALID_INPUT)
+        else:
+            shape = color.shape[:2]
+            if shape not in estimators:
+                estimators[shape] = MonocularHeadPose(
+                    intrinsics_from_fov(shape[1], shape[0], args.fov), args.ipd,
+                    method=args.method, head_size=args.head_size, detector=detector,
+                    model_dir=args.model_dir, track=False)
+            result = estimators[shape].process(color)
+        r = _row(image, result)
+        rows.append(r)
         angles = " ".join(f"{r[k]:6.1f}" for k in COLUMNS[2:5])
         pos = " ".join(f"{r[k]:6.3f}" for k in COLUMNS[5:8])
-        print(f"{r['image']:<{width}}  {r['status']:<16}{angles}   {pos}")
+        print(f"{r['image']:<{width}}  {r['status']:<16}{angles}   {pos}", flush=True)
     ok = sum(r["status"] == "OK" for r in rows)
-    size = (f"--head-size {args.head_size:g} m" if args.method == "net"
-            else f"--ipd {args.ipd:g} m")
+    assumed = (f"--head-size {args.head_size:g} m" if args.method == "net"
+               else f"--ipd {args.ipd:g} m")
     print(f"{ok} of {len(rows)} images with a head pose (angles: AFLW2000-3D convention, "
           f"relative to the viewing ray; position: camera frame at --fov {args.fov:g} deg, "
-          f"distance from {size})")
+          f"distance from {assumed})")
     if args.output:
         note = replaced_note(args.output)
         with open(args.output, "w", newline="", encoding="utf-8") as f:
