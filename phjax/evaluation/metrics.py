@@ -499,6 +499,57 @@ def _parabola_vertex(c: np.ndarray, maximum: bool) -> float:
     return float(0.5 * (c[0] - c[2]) / den)
 
 
+#: :func:`_grid_minimum` scores every ``_COARSE``-th point of its grid, then the whole grid
+#: within ``_COARSE`` points of the ``_CANDIDATES`` lowest local minima of those
+_COARSE = 5
+_CANDIDATES = 3
+
+
+def _grid_minimum(size: int, score) -> tuple[np.ndarray, int]:
+    """The lowest value of ``score`` over the grid points ``0 .. size - 1``, searched coarse to
+    fine, and the values scored (NaN: not scored, or no value).
+
+    ``score(ks)`` returns the values at the grid points ``ks`` (NaN where a point has none).
+    Every ``_COARSE``-th point is scored, then every point within ``_COARSE`` of the three
+    lowest local minima of those, then downhill until the best point's neighbours are scored
+    (a parabola through them refines it). This is the minimum over the whole grid whenever the
+    values have no dip narrower than ``_COARSE`` points beside their lowest ones: so for the
+    RMSE curves of :func:`shift_lag`, smooth at the grid's scale (the motion changes little
+    within a few ms of shift), but not for :func:`latency`'s correlation of raw velocities,
+    which can have several near-equal peaks. About a third of a 200-point grid is scored.
+
+    Returns:
+        ``(values, k)``: the values (NaN where not scored) and the index of the lowest (``-1``
+        when no point has a value).
+    """
+    values = np.full(size, np.nan)
+    scored = np.zeros(size, bool)
+
+    def fill(ks) -> None:
+        ks = np.unique(np.asarray(ks, dtype=int))
+        ks = ks[~scored[ks]]
+        if ks.size:
+            values[ks] = score(ks)
+            scored[ks] = True
+
+    coarse = np.unique(np.r_[np.arange(0, size, _COARSE), size - 1])
+    fill(coarse)
+    vc = np.where(np.isnan(values[coarse]), np.inf, values[coarse])
+    low = np.r_[True, vc[1:] <= vc[:-1]] & np.r_[vc[:-1] <= vc[1:], True] & np.isfinite(vc)
+    for c in coarse[low][np.argsort(vc[low], kind="stable")][:_CANDIDATES]:
+        fill(np.arange(max(c - _COARSE, 0), min(c + _COARSE, size - 1) + 1))
+    if np.all(np.isnan(values)):
+        fill(np.arange(size))  # no value on the coarse grid or around it: every point
+        if np.all(np.isnan(values)):
+            return values, -1
+    while True:
+        k = int(np.nanargmin(values))
+        todo = [j for j in (k - 1, k + 1) if 0 <= j < size and not scored[j]]
+        if not todo:
+            return values, k
+        fill(todo)
+
+
 @_over_recordings(times="times", est="rows", gt="rows")
 def latency(
     times: Float[ArrayLike, " n"],
@@ -527,9 +578,11 @@ def latency(
         ``Latency(lag, correlation, count)``; positive lag = estimate behind (``est(t) ~
         gt(t - lag)``). NaN with count 0 when fewer than 4 common samples exist.
 
-    Cost ``O(n * max_lag / h)`` (one ``np.interp`` per candidate lag). For a zero-order-hold
-    staircase the estimate is about half the hold period minus half a render period (velocity
-    samples sit at interval midpoints).
+    Cost ``O(n * max_lag / h)`` (one ``np.interp`` per candidate lag; every lag is scored: on
+    raw velocities the correlation can have several near-equal peaks, and a coarse-to-fine
+    search as in :func:`shift_lag` picked another one in 1 of 384 real streams). For a
+    zero-order-hold staircase the estimate is about half the hold period minus half a render
+    period (velocity samples sit at interval midpoints).
     """
     t, e, g, kind = _lag_inputs(times, est, gt, kind)
     nan = Latency(float("nan"), float("nan"), 0)
@@ -571,10 +624,6 @@ def latency(
 
 #: candidate shifts of :func:`shift_lag` evaluated together
 _LAG_CHUNK = 16
-#: :func:`shift_lag` scores every ``_LAG_COARSE``-th shift of its grid, then the whole grid
-#: within ``_LAG_COARSE`` steps of the ``_LAG_CANDIDATES`` lowest local minima of those
-_LAG_COARSE = 5
-_LAG_CANDIDATES = 3
 
 
 def _interpolant(t: np.ndarray, x: np.ndarray, kind: str):
@@ -639,11 +688,10 @@ def shift_lag(
     The best grid value is refined by a parabola through its neighbours; at an end of the grid
     the end is returned (the true lag may lie beyond it).
 
-    The grid is searched coarse to fine: every 5th shift, then every shift within 5 steps of the
-    three lowest local minima of those, then downhill until the best shift's neighbours are
-    scored. That finds the whole grid's minimum whenever ``RMSE(d)`` has no dip narrower than
-    5 steps (10 ms by default) beside its lowest ones: motion whose error changes within a few
-    ms of shift is not a lag. It scores ~60 of the default grid's 201 shifts.
+    The grid is searched coarse to fine (:func:`_grid_minimum`: every 5th shift, then the whole
+    grid around the lowest of those, ~60 of the default grid's 201 shifts), which finds the
+    whole grid's minimum unless ``RMSE(d)`` has a dip narrower than 5 steps (10 ms by default)
+    beside its lowest ones.
 
     Unlike :func:`latency` (velocity cross-correlation) this is the lag a viewer sees: how far
     back in time the ground truth best matches the stream, including any constant offset.
@@ -667,36 +715,22 @@ def shift_lag(
     with np.errstate(invalid="ignore", divide="ignore"):  # pairs with a NaN sample: unused
         gt_at = _interpolant(t, g, kind)
     t, e = t[ok], e[ok]  # the scored samples
-    rmse = np.full(lags.size, np.nan)
 
-    def score(ks) -> None:
-        """The RMSE at the shifts ``lags[ks]`` not yet scored, a few shifts at a time (the
-        ``(shifts, n, d)`` temporaries of all ~200 shifts at once are ~50 MB each)."""
-        ks = np.array([k for k in np.unique(ks) if np.isnan(rmse[k])], dtype=int)
-        for c in range(0, ks.size, _LAG_CHUNK):
+    def rmse_at(ks):
+        """The RMSE at the shifts ``lags[ks]``, a few shifts at a time (the ``(shifts, n, d)``
+        temporaries of all ~200 shifts at once are ~50 MB each)."""
+        out = np.empty(len(ks))
+        for c in range(0, len(ks), _LAG_CHUNK):
             kc = ks[c:c + _LAG_CHUNK]
             shifted = gt_at(t[None, :] - lags[kc, None])
             if kind == "position":
                 err = np.linalg.norm(shifted - e, axis=-1)
             else:
                 err = np.degrees(_geodesic_angle(shifted, e[None]))
-            rmse[kc] = np.sqrt(np.mean(err**2, axis=-1))
+            out[c:c + _LAG_CHUNK] = np.sqrt(np.mean(err**2, axis=-1))
+        return out
 
-    # RMSE(d) is smooth at the grid's scale (the truth moves little in a few ms): every
-    # _LAG_COARSE-th shift, the whole grid around its lowest local minima, then downhill on the
-    # grid until the best shift's neighbours are scored (the parabola needs them)
-    coarse = np.unique(np.r_[np.arange(0, lags.size, _LAG_COARSE), lags.size - 1])
-    score(coarse)
-    rc = rmse[coarse]
-    low = np.r_[True, rc[1:] <= rc[:-1]] & np.r_[rc[:-1] <= rc[1:], True]
-    for c in coarse[low][np.argsort(rc[low], kind="stable")][:_LAG_CANDIDATES]:
-        score(np.arange(max(c - _LAG_COARSE, 0), min(c + _LAG_COARSE, lags.size - 1) + 1))
-    while True:
-        k = int(np.nanargmin(rmse))
-        todo = [j for j in (k - 1, k + 1) if 0 <= j < lags.size and np.isnan(rmse[j])]
-        if not todo:
-            break
-        score(todo)
+    rmse, k = _grid_minimum(lags.size, rmse_at)
     if np.nanmax(rmse) - rmse[k] <= 1e-9 * np.nanmax(rmse):
         return Lag(float("nan"), float(rmse[k]), count)  # the truth does not move: no lag
     lag = float(lags[k])
