@@ -785,14 +785,14 @@ def test_times_or_positions_in_another_unit_warn_once(tmp_path, what, factor, wo
     with pytest.warns(io.TrajectoryUnitWarning) as rec:
         tr = io.read_tum(path)
     assert len(rec) == 1, [str(w.message) for w in rec]
+    assert str(rec[0].message).startswith(f"{path}: ") and words in str(rec[0].message)
+    np.testing.assert_allclose(tr.times, t, rtol=1e-12, atol=1e-9 * abs(factor))
+    np.testing.assert_allclose(tr.positions, p, rtol=1e-12)
     short = tmp_path / "short.txt"  # nine poses: not checked (frames picked from a sequence)
     io.write_tum(short, Trajectory(t[:9], p[:9], src.quaternions[:9]))
     with warnings.catch_warnings():
         warnings.simplefilter("error", io.TrajectoryUnitWarning)
         io.read_tum(short)
-    assert str(rec[0].message).startswith(f"{path}: ") and words in str(rec[0].message)
-    np.testing.assert_allclose(tr.times, t, rtol=1e-12, atol=1e-9 * abs(factor))
-    np.testing.assert_allclose(tr.positions, p, rtol=1e-12)
 
 
 @pytest.mark.parametrize("folder, pattern", [
