@@ -510,10 +510,18 @@ _CSV_ALIASES = {
                  f"rot{c}") for c in "wxyz"},
 }
 _CSV_ROLE = {alias: role for role, names in _CSV_ALIASES.items() for alias in names}
+#: the quantities a CSV header must name (the positions may be absent together)
+_CSV_REQUIRED = ("t", "qw", "qx", "qy", "qz")
 
 
 def _csv_key(name: str) -> str:
     return "".join(ch for ch in name.lower() if ch.isalnum())
+
+
+def _is_csv_header(line: str) -> bool:
+    """Whether ``line`` names the columns :func:`read_csv` needs (any accepted separator)."""
+    named = {_CSV_ROLE.get(_csv_key(c)) for c in _split_csv(line, _csv_separator(line))}
+    return set(_CSV_REQUIRED) <= named
 
 
 def _csv_roles(names: list[str]) -> dict[str, int]:
@@ -565,7 +573,7 @@ def read_csv(path: PathLike) -> Trajectory:
     have_pos = [c in roles for c in ("x", "y", "z")]
     if any(have_pos) and not all(have_pos):
         raise _err(path, hline, "header must name all of x,y,z or none of them")
-    wanted = ["t", "qw", "qx", "qy", "qz"] + (["x", "y", "z"] if all(have_pos) else [])
+    wanted = [*_CSV_REQUIRED] + (["x", "y", "z"] if all(have_pos) else [])
     missing = [c for c in wanted if c not in roles]
     if missing:
         raise _err(
@@ -933,26 +941,20 @@ def detect_format(path: PathLike) -> str:
     data = [s for s in head if not s.startswith("#")]
     if data:
         s = data[0]
-        if "," in s:
-            toks = _split_csv(s)
-            numeric = all(map(_is_number, toks))
-            if numeric and len(toks) in (8, _EUROC_STATE_COLUMNS) and toks[0].lstrip(
-                    "+-").isdigit():
-                return "euroc"
-            if {"t", "qw", "qx", "qy", "qz"} <= {_CSV_ROLE.get(_csv_key(c)) for c in toks}:
-                return "csv"
-            if numeric and len(toks) >= 4:
-                raise _err(path, None, "comma-separated numbers without a header: name the "
-                                       "columns in a first line (t,x,y,z,qw,qx,qy,qz in any "
-                                       "order), or separate them by spaces for TUM's "
-                                       "t tx ty tz qx qy qz qw")
-        else:
-            toks = s.split()
-            if len(toks) == 8 and all(map(_is_number, toks)):
-                return "tum"
-            named = {_CSV_ROLE.get(_csv_key(c)) for c in _split_csv(s, _csv_separator(s))}
-            if {"t", "qw", "qx", "qy", "qz"} <= named:
-                return "csv"  # separated by semicolons or tabs
+        toks = _split_csv(s) if "," in s else s.split()
+        numeric = all(map(_is_number, toks))
+        if "," in s and numeric and len(toks) in (8, _EUROC_STATE_COLUMNS) and toks[0].lstrip(
+                "+-").isdigit():
+            return "euroc"
+        if "," not in s and numeric and len(toks) == 8:
+            return "tum"
+        if _is_csv_header(s):
+            return "csv"
+        if "," in s and numeric and len(toks) >= 4:
+            raise _err(path, None, "comma-separated numbers without a header: name the "
+                                   "columns in a first line (t,x,y,z,qw,qx,qy,qz in any "
+                                   "order), or separate them by spaces for TUM's "
+                                   "t tx ty tz qx qy qz qw")
     raise _err(
         path, None,
         f"cannot detect the trajectory format from its first lines; "
