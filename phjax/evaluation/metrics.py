@@ -507,44 +507,37 @@ _CANDIDATES = 3
 
 def _grid_minimum(size: int, score) -> tuple[np.ndarray, int]:
     """The lowest value of ``score`` over the grid points ``0 .. size - 1``, searched coarse to
-    fine, and the values scored (NaN: not scored, or no value).
+    fine, and the values scored.
 
-    ``score(ks)`` returns the values at the grid points ``ks`` (NaN where a point has none).
-    Every ``_COARSE``-th point is scored, then every point within ``_COARSE`` of the three
-    lowest local minima of those, then downhill until the best point's neighbours are scored
-    (a parabola through them refines it). This is the minimum over the whole grid whenever the
-    values have no dip narrower than ``_COARSE`` points beside their lowest ones: so for the
-    RMSE curves of :func:`shift_lag`, smooth at the grid's scale (the motion changes little
-    within a few ms of shift), but not for :func:`latency`'s correlation of raw velocities,
-    which can have several near-equal peaks. About a third of a 200-point grid is scored.
+    ``score(ks)`` returns the (non-NaN) values at the grid points ``ks``. Every ``_COARSE``-th
+    point is scored, then every point within ``_COARSE`` of the three lowest local minima of
+    those, then downhill until the best point's neighbours are scored (a parabola through them
+    refines it). This is the minimum over the whole grid whenever the values have no dip
+    narrower than ``_COARSE`` points beside their lowest ones: so for the RMSE curves of
+    :func:`shift_lag`, smooth at the grid's scale (the motion changes little within a few ms of
+    shift), but not for :func:`latency`'s correlation of raw velocities, which can have several
+    near-equal peaks. About a third of a 200-point grid is scored.
 
     Returns:
-        ``(values, k)``: the values (NaN where not scored) and the index of the lowest (``-1``
-        when no point has a value).
+        ``(values, k)``: the values (NaN where not scored) and the index of the lowest.
     """
-    values = np.full(size, np.nan)
-    scored = np.zeros(size, bool)
+    values = np.full(size, np.nan)  # NaN: not scored
 
     def fill(ks) -> None:
         ks = np.unique(np.asarray(ks, dtype=int))
-        ks = ks[~scored[ks]]
+        ks = ks[np.isnan(values[ks])]
         if ks.size:
             values[ks] = score(ks)
-            scored[ks] = True
 
     coarse = np.unique(np.r_[np.arange(0, size, _COARSE), size - 1])
     fill(coarse)
-    vc = np.where(np.isnan(values[coarse]), np.inf, values[coarse])
-    low = np.r_[True, vc[1:] <= vc[:-1]] & np.r_[vc[:-1] <= vc[1:], True] & np.isfinite(vc)
+    vc = values[coarse]
+    low = np.r_[True, vc[1:] <= vc[:-1]] & np.r_[vc[:-1] <= vc[1:], True]
     for c in coarse[low][np.argsort(vc[low], kind="stable")][:_CANDIDATES]:
         fill(np.arange(max(c - _COARSE, 0), min(c + _COARSE, size - 1) + 1))
-    if np.all(np.isnan(values)):
-        fill(np.arange(size))  # no value on the coarse grid or around it: every point
-        if np.all(np.isnan(values)):
-            return values, -1
     while True:
         k = int(np.nanargmin(values))
-        todo = [j for j in (k - 1, k + 1) if 0 <= j < size and not scored[j]]
+        todo = [j for j in (k - 1, k + 1) if 0 <= j < size and np.isnan(values[j])]
         if not todo:
             return values, k
         fill(todo)
