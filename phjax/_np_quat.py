@@ -36,6 +36,12 @@ def np_qconj(q: np.ndarray) -> np.ndarray:
     return q * np.array([1.0, -1.0, -1.0, -1.0])
 
 
+def np_reflect_z(q: np.ndarray) -> np.ndarray:
+    """The rotation ``S R S`` for ``S = diag(1, 1, -1)`` (a frame with ``z`` flipped):
+    ``(w, -x, -y, z)``."""
+    return q * np.array([1.0, -1.0, -1.0, 1.0])
+
+
 def np_qnormalize(q: np.ndarray) -> np.ndarray:
     """Unit quaternion."""
     return q / np.linalg.norm(q, axis=-1, keepdims=True)

@@ -86,6 +86,7 @@ from jaxtyping import Float
 from ._np_quat import np_axis_quat as _np_axis_quat
 from ._np_quat import np_hemisphere as _np_hemisphere
 from ._np_quat import np_qmul as _np_quat_mul
+from ._np_quat import np_reflect_z as _np_reflect_z
 
 __all__ = [
     "Trajectory",
@@ -676,7 +677,7 @@ def unity_euler_to_quaternion(
     qu = _np_quat_mul(
         _np_quat_mul(_np_axis_quat(1, ry), _np_axis_quat(0, rx)), _np_axis_quat(2, rz)
     )
-    return qu * np.array([1.0, -1.0, -1.0, 1.0])
+    return _np_reflect_z(qu)
 
 
 def read_cwi(

@@ -119,7 +119,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .._face_sizes import HEAD_SIZE_RANGE, IPD_RANGE  # also phjax live's ranges
-from .._np_quat import np_axis_quat, np_qconj, np_qmul, np_qnormalize
+from .._np_quat import np_axis_quat, np_qconj, np_qmul, np_qnormalize, np_reflect_z
 from .face_detection import FaceDetection, FaceDetector
 from .head_pose import HeadPoseStatus
 from .rgbd_io import CameraIntrinsics
@@ -213,11 +213,6 @@ def ray_quaternion(direction: Any) -> np.ndarray:
     return np.concatenate([[math.cos(half)], math.sin(half) * axis / s])
 
 
-def _mirror_z(q: np.ndarray) -> np.ndarray:
-    """``P R P`` for ``P = diag(1, 1, -1)`` on ``wxyz`` quaternions: ``(w, -x, -y, z)``."""
-    return q * np.array([1.0, -1.0, -1.0, 1.0])
-
-
 def quaternion_from_pitch_yaw_roll(angles: Any) -> np.ndarray:
     """Crop-relative head rotation (``wxyz``, as :attr:`MonocularResult.crop_quaternion`) of
     head-pose angles in the AFLW2000-3D / 300W-LP label convention (module docs).
@@ -234,8 +229,7 @@ def quaternion_from_pitch_yaw_roll(angles: Any) -> np.ndarray:
         raise ValueError(f"angles must have shape (..., 3) (pitch, yaw, roll), got {a.shape}")
     q = np_qmul(np_qmul(np_axis_quat(0, a[..., 0]), np_axis_quat(1, -a[..., 1])),
                 np_axis_quat(2, a[..., 2]))
-    q = _mirror_z(q)
-    return np.where(q[..., :1] < 0, -q, q)
+    return _positive_w(np_reflect_z(q))
 
 
 def pitch_yaw_roll(quaternion: Any) -> np.ndarray:
@@ -255,7 +249,7 @@ def pitch_yaw_roll(quaternion: Any) -> np.ndarray:
     q = np.asarray(quaternion, np.float64)
     if q.shape[-1:] != (4,):
         raise ValueError(f"quaternion must have shape (..., 4) (wxyz), got {q.shape}")
-    w, x, y, z = np.moveaxis(_mirror_z(np_qnormalize(q)), -1, 0)
+    w, x, y, z = np.moveaxis(np_reflect_z(np_qnormalize(q)), -1, 0)
     # intrinsic x-y-z angles (a, b, c) of R = Rx(a) Ry(b) Rz(c), from its matrix entries
     b = np.arcsin(np.clip(2 * (x * z + w * y), -1.0, 1.0))
     a = np.arctan2(-2 * (y * z - w * x), 1 - 2 * (x * x + y * y))
@@ -316,8 +310,9 @@ def _landmark_extent(landmarks: np.ndarray) -> np.ndarray:
 
 
 def _positive_w(q: np.ndarray) -> np.ndarray:
+    """Unit quaternions ``(..., 4)`` with ``w >= 0``."""
     q = np_qnormalize(q)
-    return q if q[0] >= 0 else -q
+    return np.where(q[..., :1] < 0, -q, q)
 
 
 class MonocularResult(NamedTuple):
