@@ -282,6 +282,15 @@ def check_fits(counts: dict[str, tuple[float, int]],
                          + advice)
 
 
+def model_not_found(err: Exception, example: str) -> FileNotFoundError:
+    """The library's missing-model error (a ``ModelNotFoundError``) with the command line's own
+    remedies instead of its Python ones: ``--model-dir`` (``example``: a folder holding the
+    files) or ``--download-models``."""
+    first = str(err).splitlines()[0].split(". Get it with")[0]
+    return type(err)(f"{first}: pass --model-dir FOLDER (a folder holding the model files, "
+                     f"e.g. {example}) or --download-models")
+
+
 def replaced_note(path) -> str:
     """``" (replaced the existing file)"`` when ``path`` exists, else ``""``: the commands
     overwrite their outputs and say so on the line that names the written file."""

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from .._face_sizes import HEAD_SIZE_RANGE, IPD_RANGE
-from ._common import check_output, float_between, replaced_note
+from ._common import check_output, float_between, model_not_found, replaced_note
 from ._live import FOV_RANGE
 
 #: file name endings read as images when a folder is named
@@ -49,7 +49,13 @@ def _row(image: Path, result) -> dict:
 
 
 def cmd_head_pose(args) -> int:
-    from ..vision.face_detection import HEAD_POSE_ONNX, YUNET_ONNX, FaceDetector, model_path
+    from ..vision.face_detection import (
+        HEAD_POSE_ONNX,
+        YUNET_ONNX,
+        FaceDetector,
+        ModelNotFoundError,
+        model_path,
+    )
     from ..vision.features import _require
     from ..vision.head_pose import HeadPoseStatus
     from ..vision.monocular import MonocularHeadPose, MonocularResult, intrinsics_from_fov
@@ -58,9 +64,11 @@ def cmd_head_pose(args) -> int:
         check_output(args.output)
     images = _images(args.images)
     cv2 = _require("cv2")
-    if args.download_models:  # the missing ones (checked against their sha256)
+    try:  # every model before the first image (downloading the missing ones if asked)
         for model in (YUNET_ONNX, HEAD_POSE_ONNX) if args.method == "net" else (YUNET_ONNX,):
-            model_path(model, args.model_dir, download=True)
+            model_path(model, args.model_dir, download=args.download_models)
+    except ModelNotFoundError as e:
+        raise model_not_found(e, "../shared/data/head_pose_models") from None
     detector = FaceDetector("opencv", model_dir=args.model_dir)
     estimators: dict[tuple[int, int], MonocularHeadPose] = {}  # one per image size
     width = max(len(str(image)) for image in images)

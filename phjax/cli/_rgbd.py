@@ -14,6 +14,7 @@ from ._common import (
     add_rate_argument,
     check_fits,
     check_trajectory_output,
+    model_not_found,
     positive_float,
     positive_int,
     replaced_note,
@@ -100,10 +101,7 @@ def cmd_track_rgbd(args) -> int:
                                 download=args.download_models, detect_width=cfg.detect_width,
                                 score_threshold=cfg.min_face_score)
     except ModelNotFoundError as e:  # the command line's own ways first
-        raise ModelNotFoundError(
-            f"{str(e).splitlines()[0].split('. Get it with')[0]}: pass --model-dir FOLDER (a "
-            "folder holding the model files, e.g. ../shared/data/yunet_face_detection) or "
-            "--download-models") from None
+        raise model_not_found(e, "../shared/data/yunet_face_detection") from None
     est = HeadPoseEstimator(seq.intrinsics, cfg, detector=detector, model_dir=args.model_dir,
                             reference_pose=reference)
     frames = (seq[i] for i in range(n))

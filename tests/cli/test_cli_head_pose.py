@@ -97,3 +97,5 @@ def test_missing_models_name_the_cache(tmp_path, capsys):
     assert main(["head-pose", str(photo), "--model-dir", str(tmp_path / "none")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "not found in" in err and "none" in err, err
+    assert err.endswith("pass --model-dir FOLDER (a folder holding the model files, e.g. "
+                        "../shared/data/head_pose_models) or --download-models"), err
