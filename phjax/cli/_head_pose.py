@@ -64,11 +64,14 @@ def cmd_head_pose(args) -> int:
         check_output(args.output)
     images = _images(args.images)
     cv2 = _require("cv2")
-    try:  # every model before the first image (downloading the missing ones if asked)
-        for model in (YUNET_ONNX, HEAD_POSE_ONNX) if args.method == "net" else (YUNET_ONNX,):
+    needed = [(YUNET_ONNX, "yunet_face_detection")]  # (model, its folder in ../shared/data)
+    if args.method == "net":
+        needed.append((HEAD_POSE_ONNX, "head_pose_models"))
+    for model, shared in needed:
+        try:  # every model before the first image (downloading the missing ones if asked)
             model_path(model, args.model_dir, download=args.download_models)
-    except ModelNotFoundError as e:
-        raise model_not_found(e, "../shared/data/head_pose_models") from None
+        except ModelNotFoundError as e:
+            raise model_not_found(e, f"../shared/data/{shared}") from None
     detector = FaceDetector("opencv", model_dir=args.model_dir)
     estimators: dict[tuple[int, int], MonocularHeadPose] = {}  # one per image size
     width = max(len(str(image)) for image in images)

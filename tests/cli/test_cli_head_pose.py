@@ -98,4 +98,4 @@ def test_missing_models_name_the_cache(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "not found in" in err and "none" in err, err
     assert err.endswith("pass --model-dir FOLDER (a folder holding the model files, e.g. "
-                        "../shared/data/head_pose_models) or --download-models"), err
+                        "../shared/data/yunet_face_detection) or --download-models"), err
