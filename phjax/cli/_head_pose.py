@@ -85,11 +85,13 @@ def cmd_head_pose(args) -> int:
                                      HeadPoseStatus.INVALID_INPUT)
         else:
             shape = color.shape[:2]
-            if shape not in estimators:
-                estimators[shape] = MonocularHeadPose(
-                    intrinsics_from_fov(shape[1], shape[0], args.fov), args.ipd,
-                    method=args.method, head_size=args.head_size, detector=detector,
-                    model_dir=args.model_dir, track=False)
+            if shape not in estimators:  # the models are loaded once, for the first image
+                intrinsics = intrinsics_from_fov(shape[1], shape[0], args.fov)
+                estimators[shape] = (
+                    next(iter(estimators.values())).with_intrinsics(intrinsics) if estimators
+                    else MonocularHeadPose(intrinsics, args.ipd, method=args.method,
+                                           head_size=args.head_size, detector=detector,
+                                           model_dir=args.model_dir, track=False))
             result = estimators[shape].process(color)
         r = _row(image, result)
         rows.append(r)

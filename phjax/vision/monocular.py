@@ -111,6 +111,7 @@ Microsoft FaceSynthetics, research-only). Treat ``head-pose-0.4-small-int8.onnx`
 
 from __future__ import annotations
 
+import copy
 import math
 import numbers
 import time
@@ -419,7 +420,7 @@ class MonocularHeadPose:
         from .features import _require
 
         self._cv2 = _require("cv2")
-        self.intrinsics = intrinsics.checked()
+        self._set_intrinsics(intrinsics)
         self.method = method
         self.ipd = float(ipd)
         self.model = face_model(self.ipd)
@@ -427,9 +428,6 @@ class MonocularHeadPose:
         self.track = bool(track)
         self.max_rotation_std = float(max_rotation_std)
         self.max_reprojection = float(max_reprojection)
-        self._k = np.asarray(intrinsics.matrix, np.float64)
-        self._fx, self._fy = float(intrinsics.fx), float(intrinsics.fy)
-        self._cx, self._cy = float(intrinsics.cx), float(intrinsics.cy)
         self.localizer = None
         self.detector = None
         if detector == "localizer":
@@ -449,10 +447,32 @@ class MonocularHeadPose:
         self._last: tuple[np.ndarray, np.ndarray] | None = None  # landmark method: PnP pose
         self._box: np.ndarray | None = None  # net method: the crop of the next frame
 
+    def _set_intrinsics(self, intrinsics: CameraIntrinsics) -> None:
+        self.intrinsics = intrinsics.checked()
+        self._k = np.asarray(self.intrinsics.matrix, np.float64)
+        self._fx, self._fy = float(self.intrinsics.fx), float(self.intrinsics.fy)
+        self._cx, self._cy = float(self.intrinsics.cx), float(self.intrinsics.cy)
+
     def reset(self) -> None:
         """Forget the previous frame (the next frame is detected / solved from scratch)."""
         self._last = None
         self._box = None
+
+    def with_intrinsics(self, intrinsics: CameraIntrinsics) -> MonocularHeadPose:
+        """The same estimator for another camera (or image size), sharing the loaded models.
+
+        Arguments:
+            intrinsics: the other camera's pinhole model.
+
+        Returns:
+            A new estimator with every other setting of this one and no previous frame; its
+            detector and network sessions are this one's (loaded once for a folder of photos
+            of mixed sizes).
+        """
+        other = copy.copy(self)
+        other._set_intrinsics(intrinsics)
+        other.reset()
+        return other
 
     def _nan(self, t, status, **kw) -> MonocularResult:
         return MonocularResult(float(t), np.full(3, np.nan), np.full(4, np.nan), status,

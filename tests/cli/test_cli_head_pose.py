@@ -99,3 +99,35 @@ def test_missing_models_name_the_cache(tmp_path, capsys):
     assert len(err.splitlines()) == 1 and "not found in" in err and "none" in err, err
     assert err.endswith("pass --model-dir FOLDER (a folder holding the model files, e.g. "
                         "../shared/data/yunet_face_detection) or --download-models"), err
+
+
+def test_photos_of_other_sizes_share_the_loaded_models(tmp_path, models, capsys, monkeypatch):
+    """A photo and the same photo on a larger canvas: each gets its own camera model (the
+    canvas one reads farther to the side, the same angles) from one network session."""
+    import cv2
+
+    from phjax.vision import _head_pose_net
+
+    loads = []
+    original = _head_pose_net.HeadPoseNet.__init__
+
+    def counted(self, *args, **kwargs):
+        loads.append(1)
+        original(self, *args, **kwargs)
+
+    monkeypatch.setattr(_head_pose_net.HeadPoseNet, "__init__", counted)
+    photo = cv2.imread(str(shared_path("aflw2000_3d_sample", "image00050.jpg")))
+    canvas = np.full((480, 640, 3), 128, np.uint8)
+    canvas[15:465, 190:640] = photo  # the face moves 190 px to the right of the centre
+    cv2.imwrite(str(tmp_path / "a.png"), photo)
+    cv2.imwrite(str(tmp_path / "b.png"), canvas)
+    out = tmp_path / "poses.csv"
+    assert main(["head-pose", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "-o", str(out),
+                 "--model-dir", str(models)]) == 0
+    assert "2 of 2 images with a head pose" in capsys.readouterr().out
+    assert len(loads) == 1
+    with open(out, newline="") as f:
+        a, b = list(csv.DictReader(f))
+    for k in ("pitch_deg", "yaw_deg", "roll_deg"):  # the same face: angles within 3 deg
+        assert abs(float(a[k]) - float(b[k])) < 3.0, (k, a, b)
+    assert float(b["x_m"]) > float(a["x_m"]) + 0.03, (a, b)

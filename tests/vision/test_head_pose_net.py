@@ -248,6 +248,26 @@ def test_biwi_absolute_pose_and_depth_on_a_calibrated_camera(detector):
         assert np.linalg.norm(r.position - t) < 0.08  # measured 40-65 mm
 
 
+def test_with_intrinsics_shares_the_models_and_equals_a_fresh_estimator(aflw, est):
+    """Another image size through ``with_intrinsics``: the same detector and network sessions
+    (``phjax head-pose`` loads them once for a folder of mixed sizes), the same result as an
+    estimator built for that size, and the original estimator unchanged."""
+    intr = intrinsics_from_fov(640, 480, 60.0)
+    other = est.with_intrinsics(intr)
+    assert other.net is est.net and other.detector is est.detector
+    assert other.intrinsics.shape == (480, 640) and est.intrinsics.shape == (450, 450)
+    fresh = MonocularHeadPose(intr, detector=est.detector,
+                              model_dir=shared_path("head_pose_models"), track=False)
+    for _, img, _ in aflw[:3]:
+        canvas = np.full((480, 640, 3), 128, np.uint8)
+        canvas[15:465, 95:545] = img
+        a, b = other.process(canvas), fresh.process(canvas)
+        assert a.ok and a.status == b.status
+        np.testing.assert_array_equal(a.position, b.position)
+        np.testing.assert_array_equal(a.quaternion, b.quaternion)
+        assert est.process(img).ok and not est.process(canvas).ok  # wrong size for est
+
+
 def test_depth_follows_the_apparent_head_size(aflw, detector):
     """A photo shown at half size on a 640 x 480 canvas reads twice as far away; the distance
     is proportional to the assumed head size; lateral position follows the image position."""
