@@ -76,6 +76,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -344,7 +345,7 @@ def _unit_warnings(t: np.ndarray, p: np.ndarray, source: str) -> None:
         warnings.warn(
             f"{source}: the median interval between poses is {interval:.3g} s "
             f"({1 / interval:.3g} Hz); times are read in seconds: are they in "
-            f"{'milliseconds or nanoseconds' if interval > hi else 'another unit'}?",
+            f"{'milliseconds, microseconds or nanoseconds' if interval > hi else 'another unit'}?",
             TrajectoryUnitWarning, stacklevel=4)
         return  # speeds in a wrong time unit say nothing about the positions
     ok = np.all(np.isfinite(p), axis=-1)
@@ -501,8 +502,9 @@ def read_euroc(path: PathLike) -> Trajectory:
     return _canonicalise(t, p, q, os.fspath(path))
 
 
-#: column names ``read_csv`` accepts for each quantity, compared after lower-casing and removing
-#: everything but letters and digits (``Pos_X``, ``pos.x`` and ``pos x`` are all ``posx``)
+#: column names ``read_csv`` accepts for each quantity, compared after removing a unit in
+#: brackets and lower-casing and removing everything but letters and digits (``Pos_X``,
+#: ``pos.x`` and ``pos x [m]`` are all ``posx``)
 _CSV_ALIASES = {
     "t": ("t", "time", "times", "timestamp", "stamp", "ts", "seconds"),
     **{c: (c, f"t{c}", f"p{c}", f"pos{c}", f"position{c}", f"translation{c}")
@@ -513,9 +515,25 @@ _CSV_ALIASES = {
 _CSV_ROLE = {alias: role for role, names in _CSV_ALIASES.items() for alias in names}
 #: the quantities a CSV header must name (the positions may be absent together)
 _CSV_REQUIRED = ("t", "qw", "qx", "qy", "qz")
+#: a unit in a CSV column name: ``t [s]``, ``x (mm)``, ``x_[m]``, ``q_w []``
+_CSV_UNIT = re.compile(r"[\[(]([^\])]*)[\])]\s*$")
+#: the units read_csv converts (to seconds and metres); the quaternion's unit must be empty
+_CSV_UNITS = {"t": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "\u00b5s": 1e-6, "ns": 1e-9},
+              "x": {"m": 1.0, "cm": 1e-2, "mm": 1e-3}}
+#: column names of the nanoseconds beside whole seconds (ROS's ``sec`` / ``nanosec`` pair)
+_CSV_NANOSECONDS = ("nsec", "nsecs", "nanosec", "nanosecs", "nanoseconds", "ns")
+#: empty fields and the missing-value words of spreadsheets and pandas, read as NaN
+_CSV_MISSING = ("", "na", "n/a", "nan", "null", "none")
+
+
+def _csv_unit(name: str) -> str | None:
+    """The unit in brackets at the end of a column name (``None`` without one)."""
+    m = _CSV_UNIT.search(name)
+    return m.group(1).strip().lower() if m else None
 
 
 def _csv_key(name: str) -> str:
+    name = _CSV_UNIT.sub("", name)
     return "".join(ch for ch in name.lower() if ch.isalnum())
 
 
@@ -527,7 +545,7 @@ def _is_csv_header(line: str) -> bool:
 
 def _csv_roles(names: list[str]) -> dict[str, int]:
     """Column index of each quantity that ``names`` (a CSV header) holds; raises ``ValueError``
-    naming two columns that both name one quantity."""
+    naming two columns that both name one quantity, or a seconds / nanoseconds pair."""
     found: dict[str, int] = {}
     for i, name in enumerate(names):
         role = _CSV_ROLE.get(_csv_key(name))
@@ -536,7 +554,41 @@ def _csv_roles(names: list[str]) -> dict[str, int]:
         if role in found:
             raise ValueError(f"columns {names[found[role]]!r} and {name!r} both name {role!r}")
         found[role] = i
+    nanos = [n for n in names if _csv_key(n) in _CSV_NANOSECONDS]
+    if "t" in found and nanos:
+        raise ValueError(f"{names[found['t']]!r} beside {nanos[0]!r} looks like whole seconds "
+                         "and nanoseconds: combine them into one time column in seconds")
     return found
+
+
+def _csv_scale(name: str, role: str) -> float:
+    """The factor to seconds / metres of column ``name`` (``role`` t, x, y, z, q*) from its
+    unit in brackets; raises ``ValueError`` for a unit read_csv does not convert."""
+    unit = _csv_unit(name)
+    if unit is None:
+        return 1.0
+    if role.startswith("q"):
+        if unit in ("", "-", "1"):
+            return 1.0
+        raise ValueError(f"column {name!r}: a quaternion has no unit")
+    table = _CSV_UNITS["t" if role == "t" else "x"]
+    if unit not in table:
+        raise ValueError(f"column {name!r}: unit {unit!r} is not one of {sorted(table)}")
+    return table[unit]
+
+
+def _csv_header_line(lines: list[str], data: list[tuple[int, str]]) -> tuple[int, str] | None:
+    """``(line number, text)`` of a CSV file's header (``lines``; ``data``: its non-comment
+    lines): its first non-comment line when that names the columns, else the last ``#``
+    comment line before the data when that does (``#t,x,y,z,qw,qx,qy,qz``), else ``None``."""
+    if _is_csv_header(data[0][1]):
+        return data[0]
+    for i in range(data[0][0] - 1, 0, -1):
+        s = lines[i - 1].strip()
+        if s.startswith("#"):
+            text = s.lstrip("#").strip()
+            return (i, text) if _is_csv_header(text) else None
+    return None
 
 
 def read_csv(path: PathLike) -> Trajectory:
@@ -548,9 +600,12 @@ def read_csv(path: PathLike) -> Trajectory:
     common spellings are accepted: time ``t``, ``time``, ``timestamp``, ``stamp``, ``ts``;
     position ``x``, ``tx``, ``px``, ``pos_x``, ``position_x`` (and ``y``, ``z``); quaternion
     ``qw``, ``quat_w``, ``orientation_w``, ``rotation_w`` (and ``x``, ``y``, ``z``). The
-    quaternion is read by name, so scalar-first and scalar-last files both work. The position
-    columns may all be absent (orientation only: positions become NaN); other columns are
-    ignored. ``#`` lines are comments.
+    quaternion is read by name, so scalar-first and scalar-last files both work. A unit in
+    brackets at the end of a name is converted: ``t [ms]`` (``s``, ``ms``, ``us``, ``ns``),
+    ``x (mm)`` (``m``, ``cm``, ``mm``). The position columns may all be absent (orientation
+    only: positions become NaN); other columns are ignored. ``#`` lines are comments; the
+    header may be one (``#t,x,y,z,qw,qx,qy,qz``, the last comment line before the data).
+    Empty fields and ``NA`` / ``null`` / ``None`` are missing values (NaN: a lost frame).
 
     Arguments:
         path: CSV file (seconds, metres).
@@ -558,15 +613,16 @@ def read_csv(path: PathLike) -> Trajectory:
     Returns:
         The :class:`Trajectory`.
     """
-    data = _data_lines(_read_lines(path))
+    lines = _read_lines(path)
+    data = _data_lines(lines)
     if not data:
         raise _err(path, None, "empty file (expected a header t,x,y,z,qw,qx,qy,qz)")
-    hline, header = data[0]
+    hline, header = _csv_header_line(lines, data) or data[0]
     sep = _csv_separator(header)
     names = _split_csv(header, sep)
-    dup = sorted({c for c in names if names.count(c) > 1})
-    if dup:
-        raise _err(path, hline, f"duplicate header column(s) {dup}")
+    if all(map(_is_number, names)):
+        raise _err(path, hline, "the first line is numbers, not a header: name the columns in "
+                                "a first line (t,x,y,z,qw,qx,qy,qz in any order)")
     try:
         roles = _csv_roles(names)
     except ValueError as e:
@@ -582,15 +638,19 @@ def read_csv(path: PathLike) -> Trajectory:
             f"header {header!r} lacks column(s) {missing} (expected t,x,y,z,qw,qx,qy,qz)",
         )
     idx = [roles[c] for c in wanted]
-    body = data[1:]
+    try:
+        scale = np.array([_csv_scale(names[i], c) for i, c in zip(idx, wanted)])
+    except ValueError as e:
+        raise _err(path, hline, str(e)) from None
+    body = [(ln, s) for ln, s in data if ln > hline]
     linenos = [ln for ln, _ in body]
     rows = []
     for ln, s in body:
         r = _split_csv(s, sep)
         if len(r) != len(names):
             raise _err(path, ln, f"expected {len(names)} columns ({header}), found {len(r)}")
-        rows.append([r[i] for i in idx])
-    a = _float_table(path, linenos, rows, wanted, [i + 1 for i in idx])
+        rows.append([("nan" if r[i].lower() in _CSV_MISSING else r[i]) for i in idx])
+    a = _float_table(path, linenos, rows, wanted, [i + 1 for i in idx]) * scale
     t, q = a[:, 0], a[:, 1:5]
     p = a[:, 5:8] if all(have_pos) else np.full((len(t), 3), np.nan)
     _check_values(path, linenos, t, p, q)
@@ -944,6 +1004,11 @@ def detect_format(path: PathLike) -> str:
         s = data[0]
         toks = _split_csv(s) if "," in s else s.split()
         numeric = all(map(_is_number, toks))
+        comments = head[:head.index(s)]
+        if comments and comments[-1].startswith("#"):  # a commented header naming the columns
+            named = comments[-1].lstrip("#").strip()
+            if _is_csv_header(named) and _csv_separator(named) in s:
+                return "csv"
         if "," in s and numeric and len(toks) in (8, _EUROC_STATE_COLUMNS) and toks[0].lstrip(
                 "+-").isdigit():
             return "euroc"
@@ -954,8 +1019,8 @@ def detect_format(path: PathLike) -> str:
         if "," in s and numeric and len(toks) >= 4:
             raise _err(path, None, "comma-separated numbers without a header: name the "
                                    "columns in a first line (t,x,y,z,qw,qx,qy,qz in any "
-                                   "order), or separate them by spaces for TUM's "
-                                   "t tx ty tz qx qy qz qw")
+                                   "order; lines starting with # are comments), or separate "
+                                   "them by spaces for TUM's t tx ty tz qx qy qz qw")
     raise _err(
         path, None,
         f"cannot detect the trajectory format from its first lines; "

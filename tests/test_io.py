@@ -763,7 +763,7 @@ def test_unsorted_and_duplicate_times_are_fixed_with_warnings(tmp_path, reader, 
 #: (what is rescaled, factor, expected words of the warning): fr1_xyz as a file of another unit
 UNIT_MISTAKES = [
     ("times", 1e3, "median interval between poses is 10 s (0.1 Hz); times are read in seconds: "
-                   "are they in milliseconds or nanoseconds?"),
+                   "are they in milliseconds, microseconds or nanoseconds?"),
     ("times", 1e9, "1e+07 s"),
     ("times", 1e-3, "1e-05 s (1e+05 Hz); times are read in seconds: are they in another unit?"),
     ("positions", 1e3, "positions are read in metres: are they in millimetres or centimetres?"),
@@ -847,6 +847,67 @@ def test_a_csv_of_numbers_without_a_header_says_what_to_add(tmp_path):
     with pytest.raises(TrajectoryFormatError, match=r"poses\.csv: comma-separated numbers "
                        r"without a header: name the columns in a first line"):
         io.read_trajectory(path)
+
+
+def _fr1_xyz(n=50):
+    ref = io.read_tum(shared_path("tum_rgbd_groundtruth", "fr1_xyz-groundtruth.txt"))
+    return ref.times[:n], ref.positions[:n], ref.quaternions[:n]
+
+
+def test_csv_units_in_brackets_are_converted(tmp_path):
+    """``t [ms]``, ``x (mm)``, ``qw []``: real poses written in milliseconds and millimetres
+    read back in seconds and metres (without a unit warning); a unit phjax does not convert is
+    a one-line error naming the column."""
+    t, p, q = _fr1_xyz()
+    path = tmp_path / "units.csv"
+    table = np.concatenate([1e3 * t[:, None], 1e3 * p, q], axis=1)
+    path.write_text("t [ms],x (mm),y (mm),z (mm),qw [],qx [],qy [],qz []\n" + "\n".join(
+        ",".join(repr(float(v)) for v in row) for row in table) + "\n")
+    assert io.detect_format(path) == "csv"
+    got = no_warnings(io.read_trajectory, path)
+    np.testing.assert_allclose(got.times, t, rtol=1e-15)
+    np.testing.assert_allclose(got.positions, p, rtol=1e-12)
+    np.testing.assert_allclose(got.quaternions, q, atol=1e-15)
+    path.write_text("t [s],x [ft],y [ft],z [ft],qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n")
+    with pytest.raises(TrajectoryFormatError, match=r"units\.csv, line 1: column 'x \[ft\]': "
+                       r"unit 'ft' is not one of \['cm', 'm', 'mm'\]"):
+        io.read_csv(path)
+
+
+def test_csv_header_in_a_comment_is_read_by_name(tmp_path):
+    """``#timestamp,tx,ty,tz,qx,qy,qz,qw`` (scalar-last, as a ``#`` comment like EuRoC's):
+    read as CSV by its names, not as EuRoC's scalar-first columns; EuRoC's own header (names
+    phjax does not know) still means EuRoC."""
+    t, p, q = _fr1_xyz()
+    path = tmp_path / "commented.csv"
+    table = np.concatenate([t[:, None], p, q[:, [1, 2, 3, 0]]], axis=1)
+    path.write_text("# exported by another tool\n#timestamp,tx,ty,tz,qx,qy,qz,qw\n" + "\n".join(
+        ",".join(repr(float(v)) for v in row) for row in table) + "\n")
+    assert io.detect_format(path) == "csv"
+    got = no_warnings(io.read_trajectory, path)
+    np.testing.assert_array_equal(got.times, t)
+    np.testing.assert_allclose(got.quaternions, q, atol=1e-15)
+    euroc = sorted(shared_path("tum_vi_room_groundtruth").glob("*.csv"))[0]
+    assert io.detect_format(euroc) == "euroc"
+
+
+def test_csv_missing_values_trailing_separators_and_second_pairs(tmp_path):
+    """pandas' empty field, ``NA``, ``null``: a lost frame; trailing commas (unnamed empty
+    columns) are ignored; a whole-seconds column beside a nanoseconds one is refused."""
+    path = tmp_path / "p.csv"
+    path.write_text("t,x,y,z,qw,qx,qy,qz,,\n0.0,,,,NA,null,None,,,\n"
+                    "0.1,1,2,3,1,0,0,0,,\n")
+    tr = io.read_csv(path)
+    assert np.isnan(tr.positions[0]).all() and np.isnan(tr.quaternions[0]).all()
+    np.testing.assert_array_equal(tr.positions[1], [1, 2, 3])
+    path.write_text("seconds,nanoseconds,x,y,z,qw,qx,qy,qz\n1,5,0,0,0,1,0,0,0\n")
+    with pytest.raises(TrajectoryFormatError, match=r"'seconds' beside 'nanoseconds' looks like "
+                       r"whole seconds and nanoseconds: combine them"):
+        io.read_trajectory(path)
+    path.write_text("0.0,0,0,0,1,0,0,0\n0.1,0,0,0,1,0,0,0\n")
+    with pytest.raises(TrajectoryFormatError, match=r"line 1: the first line is numbers, not a "
+                       r"header"):
+        io.read_csv(path)
 
 
 def test_csv_header_any_order_and_orientation_only(tmp_path):
