@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import sys
 from pathlib import Path
@@ -60,9 +61,14 @@ def cmd_head_pose(args) -> int:
     from ..vision.head_pose import HeadPoseStatus
     from ..vision.monocular import MonocularHeadPose, MonocularResult, intrinsics_from_fov
 
-    if args.output:
-        check_output(args.output)
     images = _images(args.images)
+    if args.output:
+        out = check_output(args.output)
+        if out.suffix.lower() in IMAGE_SUFFIXES:  # "-o photos/*.jpg" puts a photo after -o
+            raise ValueError(f"-o {args.output}: the output is a CSV table, not an image "
+                             f"(did the shell expand a pattern after -o?)")
+        if out.exists() and any(out.resolve() == image.resolve() for image in images):
+            raise ValueError(f"-o {args.output}: is one of the input images")
     cv2 = _require("cv2")
     needed = [(YUNET_ONNX, "yunet_face_detection")]  # (model, its folder in ../shared/data)
     if args.method == "net":
@@ -77,27 +83,42 @@ def cmd_head_pose(args) -> int:
     width = max(len(str(image)) for image in images)
     print(f"{'image':<{width}}  {'status':<16} pitch    yaw   roll [deg]   x      y      z [m]")
     rows = []
-    for image in images:  # each row printed as it is done (a folder may hold thousands)
-        color = cv2.imread(str(image), cv2.IMREAD_COLOR)
-        if color is None:
-            print(f"phjax: warning: {image}: not an image OpenCV can read", file=sys.stderr)
-            result = MonocularResult(0.0, np.full(3, np.nan), np.full(4, np.nan),
-                                     HeadPoseStatus.INVALID_INPUT)
-        else:
-            shape = color.shape[:2]
-            if shape not in estimators:  # the models are loaded once, for the first image
-                intrinsics = intrinsics_from_fov(shape[1], shape[0], args.fov)
-                estimators[shape] = (
-                    next(iter(estimators.values())).with_intrinsics(intrinsics) if estimators
-                    else MonocularHeadPose(intrinsics, args.ipd, method=args.method,
-                                           head_size=args.head_size, detector=detector,
-                                           model_dir=args.model_dir, track=False))
-            result = estimators[shape].process(color)
-        r = _row(image, result)
-        rows.append(r)
-        angles = " ".join(f"{r[k]:6.1f}" for k in COLUMNS[2:5])
-        pos = " ".join(f"{r[k]:6.3f}" for k in COLUMNS[5:8])
-        print(f"{r['image']:<{width}}  {r['status']:<16}{angles}   {pos}", flush=True)
+    note = replaced_note(args.output) if args.output else ""
+    # each row printed, and written to -o, as it is done: a folder may hold thousands, and an
+    # interrupted run keeps the rows it has
+    with (open(args.output, "w", newline="", encoding="utf-8") if args.output
+          else contextlib.nullcontext()) as table:
+        writer = csv.DictWriter(table, COLUMNS, lineterminator="\n") if table else None
+        if writer:
+            writer.writeheader()
+        for image in images:
+            color = cv2.imread(str(image), cv2.IMREAD_COLOR)
+            if color is None:
+                print(f"phjax: warning: {image}: not an image OpenCV can read", file=sys.stderr)
+                result = MonocularResult(0.0, np.full(3, np.nan), np.full(4, np.nan),
+                                         HeadPoseStatus.INVALID_INPUT)
+            else:
+                shape = color.shape[:2]
+                if shape not in estimators:  # the models are loaded once, for the first image
+                    intrinsics = intrinsics_from_fov(shape[1], shape[0], args.fov)
+                    estimators[shape] = (
+                        next(iter(estimators.values())).with_intrinsics(intrinsics)
+                        if estimators
+                        else MonocularHeadPose(intrinsics, args.ipd, method=args.method,
+                                               head_size=args.head_size, detector=detector,
+                                               model_dir=args.model_dir, track=False))
+                estimator = estimators[shape]
+                estimator.reset()  # each image on its own (the landmark method's PnP start)
+                result = estimator.process(color)
+            r = _row(image, result)
+            rows.append(r)
+            angles = " ".join(f"{r[k]:6.1f}" for k in COLUMNS[2:5])
+            pos = " ".join(f"{r[k]:6.3f}" for k in COLUMNS[5:8])
+            print(f"{r['image']:<{width}}  {r['status']:<16}{angles}   {pos}", flush=True)
+            if writer:
+                writer.writerow({k: (repr(float(v)) if isinstance(v, (float, np.floating))
+                                     else v) for k, v in r.items()})
+                table.flush()
     ok = sum(r["status"] == "OK" for r in rows)
     assumed = (f"--head-size {args.head_size:g} m" if args.method == "net"
                else f"--ipd {args.ipd:g} m")
@@ -105,13 +126,6 @@ def cmd_head_pose(args) -> int:
           f"relative to the viewing ray; position: camera frame at --fov {args.fov:g} deg, "
           f"distance from {assumed})")
     if args.output:
-        note = replaced_note(args.output)
-        with open(args.output, "w", newline="", encoding="utf-8") as f:
-            writer = csv.DictWriter(f, COLUMNS)
-            writer.writeheader()
-            for r in rows:
-                writer.writerow({k: (repr(float(v)) if isinstance(v, (float, np.floating))
-                                     else v) for k, v in r.items()})
         print(f"wrote {args.output}{note}")
     return 0
 

@@ -82,6 +82,9 @@ def test_a_folder_of_photos_gives_one_row_each(tmp_path, models, capsys):
     (["head-pose", "{photo}", "--head-size", "20"], "argument --head-size"),
     (["head-pose", "{photo}", "--ipd", "63"], "argument --ipd: must be between 0.03 and 0.1 m"),
     (["head-pose", "{photo}", "-o", "/nonexistent/dir/p.csv"], "/nonexistent/dir"),
+    # "phjax head-pose -o photos/*.jpg": the shell puts the first photo after -o
+    (["head-pose", "-o", "{photo}", "{photo}"],
+     "image00050.jpg: the output is a CSV table, not an image (did the shell expand a pattern"),
 ])
 def test_bad_input_is_one_line_and_status_2(tmp_path, capsys, argv, message):
     (tmp_path / "empty").mkdir()
@@ -131,3 +134,30 @@ def test_photos_of_other_sizes_share_the_loaded_models(tmp_path, models, capsys,
     for k in ("pitch_deg", "yaw_deg", "roll_deg"):  # the same face: angles within 3 deg
         assert abs(float(a[k]) - float(b[k])) < 3.0, (k, a, b)
     assert float(b["x_m"]) > float(a["x_m"]) + 0.03, (a, b)
+
+
+def test_the_output_is_never_an_input_and_rows_are_written_as_they_come(tmp_path, models,
+                                                                        capsys):
+    """An input named as the output (any suffix) is refused before anything is written; the
+    table has one LF-terminated line per image; the landmark method solves each photo on its
+    own (the same angles alone and after another photo)."""
+    photo = shared_path("aflw2000_3d_sample", "image00050.jpg")
+    odd = tmp_path / "photo.dat"  # an image under another suffix, named directly
+    shutil.copy(photo, odd)
+    before = odd.read_bytes()
+    assert main(["head-pose", str(odd), "-o", str(odd), "--model-dir", str(models)]) == 2
+    assert "is one of the input images" in capsys.readouterr().err
+    assert odd.read_bytes() == before
+    other = shared_path("aflw2000_3d_sample", "image00081.jpg")
+    rows = {}
+    for name, inputs in (("alone", [photo]), ("after", [other, photo])):
+        out = tmp_path / f"{name}.csv"
+        assert main(["head-pose", *map(str, inputs), "-o", str(out), "--method", "landmarks",
+                     "--model-dir", str(models)]) == 0
+        raw = out.read_bytes()
+        assert b"\r" not in raw and raw.count(b"\n") == len(inputs) + 1
+        with open(out, newline="") as f:
+            rows[name] = list(csv.DictReader(f))[-1]
+    assert rows["alone"]["status"] == "OK"
+    assert {k: v for k, v in rows["alone"].items() if k != "image"} == {
+        k: v for k, v in rows["after"].items() if k != "image"}
