@@ -252,9 +252,15 @@ def pitch_yaw_roll(quaternion: Any) -> np.ndarray:
         raise ValueError(f"quaternion must have shape (..., 4) (wxyz), got {q.shape}")
     w, x, y, z = np.moveaxis(np_reflect_z(np_qnormalize(q)), -1, 0)
     # intrinsic x-y-z angles (a, b, c) of R = Rx(a) Ry(b) Rz(c), from its matrix entries
-    b = np.arcsin(np.clip(2 * (x * z + w * y), -1.0, 1.0))
+    sb = np.clip(2 * (x * z + w * y), -1.0, 1.0)
+    b = np.arcsin(sb)
     a = np.arctan2(-2 * (y * z - w * x), 1 - 2 * (x * x + y * y))
     c = np.arctan2(-2 * (x * y - w * z), 1 - 2 * (y * y + z * z))
+    # gimbal lock (yaw +-90 deg): only pitch -+ roll is defined and both atan2 above are of
+    # rounding noise; roll 0 and the pitch from the entries that still hold the rotation
+    lock = np.abs(sb) > 1 - 1e-12
+    a = np.where(lock, np.arctan2(np.sign(sb) * 2 * (x * y + w * z), 1 - 2 * (x * x + z * z)), a)
+    c = np.where(lock, 0.0, c)
     return np.degrees(np.stack([a, -b, c], axis=-1)) + 0.0  # (no negative zeros)
 
 

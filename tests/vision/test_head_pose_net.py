@@ -135,6 +135,14 @@ def test_pitch_yaw_roll_is_the_label_convention(aflw, aflw_results):
     assert np.isnan(pitch_yaw_roll(np.full(4, np.nan))).all()
     with pytest.raises(ValueError, match=r"shape \(\.\.\., 4\)"):
         pitch_yaw_roll(np.zeros(3))
+    # at yaw +-90 deg (gimbal lock) only pitch -+ roll is defined: roll 0, and the angles still
+    # give the same rotation (they gave another one: (10, 90, 20) read back as (90, 90, 90))
+    locked = np.array([[10, 90, 20], [10, -90, 20], [-170, 90, 35], [0, 90, 0]], np.float64)
+    got = pitch_yaw_roll(quaternion_from_pitch_yaw_roll(locked))
+    np.testing.assert_allclose(got[:, 1:], [[90, 0], [-90, 0], [90, 0], [90, 0]], atol=1e-6)
+    for a, b in zip(locked, got):
+        np.testing.assert_allclose(matrix(quaternion_from_pitch_yaw_roll(b)),
+                                   matrix(quaternion_from_pitch_yaw_roll(a)), atol=1e-12)
 
 
 def test_label_convention_is_the_only_one_that_fits(aflw, aflw_results):
