@@ -77,6 +77,7 @@ import json
 import math
 import os
 import re
+import sys
 import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -330,6 +331,16 @@ _SPEED_LIMIT = 20.0
 _UNIT_MIN_POSES = 10
 
 
+def _caller_level() -> int:
+    """The ``stacklevel`` of a warning raised in this module that points at the first frame
+    outside it (the user's call of ``read_trajectory``, ``read_csv``, ...), however many of
+    this module's functions lie between."""
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename == __file__:
+        frame, level = frame.f_back, level + 1
+    return level
+
+
 def _unit_warnings(t: np.ndarray, p: np.ndarray, source: str) -> None:
     """A :class:`TrajectoryUnitWarning` when the sorted times or the positions look like another
     unit than the seconds and metres the file is read in: the median interval between poses
@@ -346,7 +357,7 @@ def _unit_warnings(t: np.ndarray, p: np.ndarray, source: str) -> None:
             f"{source}: the median interval between poses is {interval:.3g} s "
             f"({1 / interval:.3g} Hz); times are read in seconds: are they in "
             f"{'milliseconds, microseconds or nanoseconds' if interval > hi else 'another unit'}?",
-            TrajectoryUnitWarning, stacklevel=4)
+            TrajectoryUnitWarning, stacklevel=_caller_level())
         return  # speeds in a wrong time unit say nothing about the positions
     ok = np.all(np.isfinite(p), axis=-1)
     if np.count_nonzero(ok) < 3:
@@ -355,7 +366,8 @@ def _unit_warnings(t: np.ndarray, p: np.ndarray, source: str) -> None:
     if speed > _SPEED_LIMIT:
         warnings.warn(
             f"{source}: the median speed is {speed:.3g} m/s; positions are read in metres: "
-            "are they in millimetres or centimetres?", TrajectoryUnitWarning, stacklevel=4)
+            "are they in millimetres or centimetres?", TrajectoryUnitWarning,
+            stacklevel=_caller_level())
 
 
 def _canonicalise(t: np.ndarray, p: np.ndarray, q: np.ndarray, source: str, *,
@@ -367,7 +379,7 @@ def _canonicalise(t: np.ndarray, p: np.ndarray, q: np.ndarray, source: str, *,
         warnings.warn(
             f"{source}: {n_desc} timestamp(s) out of order; samples sorted by time",
             TrajectoryWarning,
-            stacklevel=3,
+            stacklevel=_caller_level(),
         )
     order = np.argsort(t, kind="stable")
     t, p, q = t[order], p[order], q[order]
@@ -378,7 +390,7 @@ def _canonicalise(t: np.ndarray, p: np.ndarray, q: np.ndarray, source: str, *,
             f"{source}: dropped {n_dup} sample(s) with duplicate timestamps "
             "(kept the first occurrence in file order)",
             TrajectoryWarning,
-            stacklevel=3,
+            stacklevel=_caller_level(),
         )
         t, p, q = t[keep], p[keep], q[keep]
     if check_units:
@@ -1057,7 +1069,7 @@ def read_trajectory(path: PathLike, format: str = "auto", name: str | None = Non
             raise _err(path, None, f"{what}; pass name= one of: {shown}")
         for w in seen:  # the selected trajectory's warnings only
             if f"[{name}]" in str(w.message):
-                warnings.warn(w.message, w.category, stacklevel=2)
+                warnings.warn(w.message, w.category, stacklevel=_caller_level())
         return several[name]
     if name is not None:
         raise _err(path, None, f"name= selects one of several trajectories (CWI, AVTrack360 "

@@ -1068,3 +1068,20 @@ def test_a_write_error_names_the_file(tmp_path):
     with pytest.raises(OSError) as e:
         io.write_trajectory("/dev/full", traj, format="tum")
     assert e.value.filename == "/dev/full" and "No space left" in e.value.strerror
+
+
+def test_warnings_point_at_the_callers_line(tmp_path):
+    """A unit or duplicate-time warning names the line that called the reader (this file),
+    whether through read_trajectory (format detection in between) or a reader directly."""
+    ms = tmp_path / "ms.csv"
+    ms.write_text("t,x,y,z,qw,qx,qy,qz\n" + "".join(f"{33.0 * i},0,0,0,1,0,0,0\n"
+                                                    for i in range(30)))
+    dup = tmp_path / "dup.txt"
+    dup.write_text("".join(f"{t} 0 0 0 0 0 0 1\n" for t in (0.0, 0.1, 0.1, 0.2)))
+    for call in (lambda: io.read_trajectory(ms), lambda: io.read_csv(ms),
+                 lambda: io.read_trajectory(dup), lambda: io.read_tum(dup)):
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            call()
+        assert len(seen) == 1 and seen[0].filename == __file__, [
+            (w.filename, w.lineno) for w in seen]
