@@ -30,8 +30,11 @@ def _images(paths: list[str]) -> list[Path]:
             found = sorted(f for f in p.iterdir()
                            if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES)
             if not found:
+                sub = any(f.is_dir() for f in p.iterdir())
                 raise ValueError(f"{name}: no images in this folder "
-                                 f"({', '.join(IMAGE_SUFFIXES)})")
+                                 f"({', '.join(IMAGE_SUFFIXES)})"
+                                 + ("; its subfolders are not searched: name them" if sub
+                                    else ""))
             out += found
         elif p.is_file():
             out.append(p)

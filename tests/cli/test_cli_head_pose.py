@@ -77,6 +77,8 @@ def test_a_folder_of_photos_gives_one_row_each(tmp_path, models, capsys):
 @pytest.mark.parametrize("argv, message", [
     (["head-pose", "no_such_photo.jpg"], "no_such_photo.jpg: No such file or directory"),
     (["head-pose", "{empty}"], "no images in this folder"),
+    (["head-pose", "{nested}"], "no images in this folder (.jpg, .jpeg, .png, .bmp, .tif, .tiff, "
+                                ".webp); its subfolders are not searched: name them"),
     (["head-pose", "{photo}", "--fov", "500"],
      "argument --fov: must be between 10 and 170 degrees, got '500'"),
     (["head-pose", "{photo}", "--head-size", "20"], "argument --head-size"),
@@ -88,8 +90,10 @@ def test_a_folder_of_photos_gives_one_row_each(tmp_path, models, capsys):
 ])
 def test_bad_input_is_one_line_and_status_2(tmp_path, capsys, argv, message):
     (tmp_path / "empty").mkdir()
+    (tmp_path / "nested" / "day1").mkdir(parents=True)
     photo = shared_path("aflw2000_3d_sample", "image00050.jpg")
-    argv = [a.format(empty=tmp_path / "empty", photo=photo) for a in argv]
+    argv = [a.format(empty=tmp_path / "empty", nested=tmp_path / "nested", photo=photo)
+            for a in argv]
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and message in err, err
