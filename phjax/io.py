@@ -589,6 +589,11 @@ def _csv_scale(name: str, role: str) -> float:
     return table[unit]
 
 
+def _excel_separator(line: str) -> str | None:
+    """The separator that Excel's first line ``sep=;`` names, else ``None``."""
+    return line[4] if len(line) == 5 and line.lower().startswith("sep=") else None
+
+
 def _csv_header_line(lines: list[str], data: list[tuple[int, str]]) -> tuple[int, str] | None:
     """``(line number, text)`` of a CSV file's header (``lines``; ``data``: its non-comment
     lines): its first non-comment line when that names the columns, else the last ``#``
@@ -618,6 +623,8 @@ def read_csv(path: PathLike) -> Trajectory:
     only: positions become NaN); other columns are ignored. ``#`` lines are comments; the
     header may be one (``#t,x,y,z,qw,qx,qy,qz``, the last comment line before the data).
     Empty fields and ``NA`` / ``null`` / ``None`` are missing values (NaN: a lost frame).
+    Spreadsheet exports: Excel's first line ``sep=;`` names the separator, and with a
+    separator other than the comma a decimal comma is read (``1,5`` is 1.5).
 
     Arguments:
         path: CSV file (seconds, metres).
@@ -627,10 +634,13 @@ def read_csv(path: PathLike) -> Trajectory:
     """
     lines = _read_lines(path)
     data = _data_lines(lines)
+    forced = _excel_separator(data[0][1]) if data else None
+    if forced:
+        data = data[1:]
     if not data:
         raise _err(path, None, "empty file (expected a header t,x,y,z,qw,qx,qy,qz)")
     hline, header = _csv_header_line(lines, data) or data[0]
-    sep = _csv_separator(header)
+    sep = forced or _csv_separator(header)
     names = _split_csv(header, sep)
     if all(map(_is_number, names)):
         raise _err(path, hline, "the first line is numbers, not a header: name the columns in "
@@ -661,6 +671,8 @@ def read_csv(path: PathLike) -> Trajectory:
         r = _split_csv(s, sep)
         if len(r) != len(names):
             raise _err(path, ln, f"expected {len(names)} columns ({header}), found {len(r)}")
+        if sep != ",":  # a decimal comma (spreadsheets in many locales: 1,5 with ; between)
+            r = [tok.replace(",", ".") for tok in r]
         rows.append([("nan" if r[i].lower() in _CSV_MISSING else r[i]) for i in idx])
     a = _float_table(path, linenos, rows, wanted, [i + 1 for i in idx]) * scale
     t, q = a[:, 0], a[:, 1:5]
@@ -1012,6 +1024,8 @@ def detect_format(path: PathLike) -> str:
     if "HMDRX" in toks and "Participant" in toks:
         return "cwi"
     data = [s for s in head if not s.startswith("#")]
+    if data and _excel_separator(data[0]):  # Excel's "sep=;" line: a CSV
+        return "csv"
     if data:
         s = data[0]
         toks = _split_csv(s) if "," in s else s.split()

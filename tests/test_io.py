@@ -1085,3 +1085,18 @@ def test_warnings_point_at_the_callers_line(tmp_path):
             call()
         assert len(seen) == 1 and seen[0].filename == __file__, [
             (w.filename, w.lineno) for w in seen]
+
+
+def test_a_spreadsheet_export_with_sep_line_and_decimal_commas(tmp_path):
+    """A European Excel export: ``sep=;`` first, semicolons between the columns, decimal
+    commas in the numbers; read as the same poses as the TUM file."""
+    t, p, q = _fr1_xyz(20)
+    path = tmp_path / "excel.csv"
+    table = np.concatenate([t[:, None], p, q], axis=1)
+    path.write_text("sep=;\nTime;X;Y;Z;QW;QX;QY;QZ\n" + "".join(
+        ";".join(repr(float(v)).replace(".", ",") for v in row) + "\n" for row in table))
+    assert io.detect_format(path) == "csv"
+    got = no_warnings(io.read_trajectory, path)
+    np.testing.assert_array_equal(got.times, t)
+    np.testing.assert_array_equal(got.positions, p)
+    np.testing.assert_allclose(got.quaternions, q, atol=1e-15)
