@@ -597,14 +597,16 @@ def _excel_separator(line: str) -> str | None:
 def _csv_header_line(lines: list[str], data: list[tuple[int, str]]) -> tuple[int, str] | None:
     """``(line number, text)`` of a CSV file's header (``lines``; ``data``: its non-comment
     lines): its first non-comment line when that names the columns, else the last ``#``
-    comment line before the data when that does (``#t,x,y,z,qw,qx,qy,qz``), else ``None``."""
+    comment line before the data when that does (``#t,x,y,z,qw,qx,qy,qz``) with its separator
+    in the first data line, else ``None``."""
     if _is_csv_header(data[0][1]):
         return data[0]
     for i in range(data[0][0] - 1, 0, -1):
         s = lines[i - 1].strip()
         if s.startswith("#"):
             text = s.lstrip("#").strip()
-            return (i, text) if _is_csv_header(text) else None
+            named = _is_csv_header(text) and _csv_separator(text) in data[0][1]
+            return (i, text) if named else None
     return None
 
 
@@ -1023,25 +1025,20 @@ def detect_format(path: PathLike) -> str:
     toks = _split_csv(first)
     if "HMDRX" in toks and "Participant" in toks:
         return "cwi"
-    data = [s for s in head if not s.startswith("#")]
-    if data and _excel_separator(data[0]):  # Excel's "sep=;" line: a CSV
+    numbered = _data_lines(head)
+    if numbered and _excel_separator(numbered[0][1]):  # Excel's "sep=;" line: a CSV
         return "csv"
-    if data:
-        s = data[0]
+    if numbered:
+        if _csv_header_line(head, numbered):  # a header (or a # one) naming the columns
+            return "csv"
+        s = numbered[0][1]
         toks = _split_csv(s) if "," in s else s.split()
         numeric = all(map(_is_number, toks))
-        comments = head[:head.index(s)]
-        if comments and comments[-1].startswith("#"):  # a commented header naming the columns
-            named = comments[-1].lstrip("#").strip()
-            if _is_csv_header(named) and _csv_separator(named) in s:
-                return "csv"
         if "," in s and numeric and len(toks) in (8, _EUROC_STATE_COLUMNS) and toks[0].lstrip(
                 "+-").isdigit():
             return "euroc"
         if "," not in s and numeric and len(toks) == 8:
             return "tum"
-        if _is_csv_header(s):
-            return "csv"
         if "," in s and numeric and len(toks) >= 4:
             raise _err(path, None, "comma-separated numbers without a header: name the "
                                    "columns in a first line (t,x,y,z,qw,qx,qy,qz in any "
