@@ -63,6 +63,7 @@ def cmd_head_pose(args) -> int:
     from ..vision.features import _require
     from ..vision.head_pose import HeadPoseStatus
     from ..vision.monocular import MonocularHeadPose, MonocularResult, intrinsics_from_fov
+    from ..vision.rgbd_io import RGBDFormatError, read_image
 
     images = _images(args.images)
     if args.output:
@@ -72,7 +73,7 @@ def cmd_head_pose(args) -> int:
                              f"(did the shell expand a pattern after -o?)")
         if out.exists() and any(out.resolve() == image.resolve() for image in images):
             raise ValueError(f"-o {args.output}: is one of the input images")
-    cv2 = _require("cv2")
+    _require("cv2")
     needed = [(YUNET_ONNX, "yunet_face_detection")]  # (model, its folder in ../shared/data)
     if args.method == "net":
         needed.append((HEAD_POSE_ONNX, "head_pose_models"))
@@ -95,9 +96,10 @@ def cmd_head_pose(args) -> int:
         if writer:
             writer.writeheader()
         for image in images:
-            color = cv2.imread(str(image), cv2.IMREAD_COLOR)
-            if color is None:
-                print(f"phjax: warning: {image}: not an image OpenCV can read", file=sys.stderr)
+            try:
+                color = read_image(image)
+            except (OSError, RGBDFormatError) as e:  # a missing, truncated or unreadable file
+                print(f"phjax: warning: {e}", file=sys.stderr)
                 result = MonocularResult(0.0, np.full(3, np.nan), np.full(4, np.nan),
                                          HeadPoseStatus.INVALID_INPUT)
             else:

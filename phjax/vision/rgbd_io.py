@@ -229,29 +229,95 @@ class RGBDSequence(Sequence):
 
 
 # ------------------------------------------------------------------------------ image files
+_JPEG_SOI, _PNG_SIGNATURE = b"\xff\xd8", b"\x89PNG\r\n\x1a\n"
+
+
+def _jpeg_complete(data: bytes) -> bool:
+    """Whether a JPEG's marker segments reach its end-of-image marker (``FFD9``) within
+    ``data``. Segments are skipped by their lengths (an EXIF thumbnail's own end marker lies
+    inside one) and entropy-coded data up to the next marker that is not a stuffed ``FF00`` or a
+    restart marker; bytes after the end marker (a phone's appended video) are not read. A
+    layout this walk does not understand counts as complete (the decoder then judges it)."""
+    pos, n = 2, len(data)
+    while pos + 1 < n:
+        if data[pos] != 0xFF:
+            return True  # not a marker where one belongs: the decoder's call
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte before a marker
+            pos += 1
+        elif marker == 0xD9:
+            return True
+        elif marker == 0x01 or 0xD0 <= marker <= 0xD7:  # markers without a length
+            pos += 2
+        else:
+            if pos + 3 >= n:
+                return False
+            pos += 2 + int.from_bytes(data[pos + 2:pos + 4], "big")
+            if marker == 0xDA:  # a scan: entropy-coded data up to the next real marker
+                while True:
+                    pos = data.find(b"\xff", pos)
+                    if pos < 0 or pos + 1 >= n:
+                        return False
+                    following = data[pos + 1]
+                    if following != 0x00 and not 0xD0 <= following <= 0xD7:
+                        break
+                    pos += 2
+    return False
+
+
+def _png_complete(data: bytes) -> bool:
+    """Whether a PNG's chunks (length, type, data, CRC) reach its ``IEND`` chunk within
+    ``data``."""
+    pos, n = len(_PNG_SIGNATURE), len(data)
+    while pos + 8 <= n:
+        length = int.from_bytes(data[pos:pos + 4], "big")
+        kind = data[pos + 4:pos + 8]
+        pos += 12 + length
+        if kind == b"IEND":
+            return pos <= n
+    return False
+
+
+def _truncated(data: bytes) -> bool:
+    """Whether a JPEG or PNG file ends before its image does (an interrupted copy or download);
+    other formats are left to the decoder. Checked before decoding: libjpeg and libpng print
+    their own lines on stderr when they meet the early end."""
+    if data.startswith(_JPEG_SOI):
+        return not _jpeg_complete(data)
+    if data.startswith(_PNG_SIGNATURE):
+        return not _png_complete(data)
+    return False
+
+
 def read_image(path: PathLike, *, unchanged: bool = False) -> np.ndarray:
     """Read an image file: colour as ``uint8 (H, W, 3)`` BGR, or ``unchanged`` (e.g. 16-bit).
 
     Uses OpenCV when installed, else Pillow. Binary PGM files (8/16-bit) are read by
-    :func:`read_pgm` (no dependency).
+    :func:`read_pgm` (no dependency). A JPEG or PNG file that ends before its image does (an
+    interrupted copy) is an error before any decoding.
 
     Raises:
         FileNotFoundError: missing file.
-        RGBDFormatError: the file cannot be decoded.
+        RGBDFormatError: the file is empty, truncated or cannot be decoded.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"image not found: {path}")
     if path.suffix.lower() in (".pgm", ".ppm") and unchanged:
         return read_pgm(path)
+    raw = path.read_bytes()
+    if not raw:
+        raise RGBDFormatError(path, "empty file, not an image")
+    if _truncated(raw):
+        raise RGBDFormatError(path, "truncated: the file ends before its image does "
+                                    "(an interrupted copy or download?)")
     try:
         import cv2
     except ImportError:
         cv2 = None
     if cv2 is not None:
-        data = np.fromfile(path, dtype=np.uint8)
         flag = cv2.IMREAD_UNCHANGED if unchanged else cv2.IMREAD_COLOR
-        img = cv2.imdecode(data, flag) if data.size else None
+        img = cv2.imdecode(np.frombuffer(raw, dtype=np.uint8), flag)
         if img is None:
             raise RGBDFormatError(path, "not a readable image")
         return img

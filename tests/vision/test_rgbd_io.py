@@ -360,6 +360,62 @@ def test_open_rgbd_errors(tmp_path):
         R.read_image(tmp_path / "broken.png")
 
 
+def _complete_images() -> dict[str, bytes]:
+    """Complete image files of the layouts a truncation check must walk: a real photo as
+    distributed (AFLW2000-3D), the same image re-encoded progressive, with restart markers,
+    with an EXIF thumbnail (a whole JPEG, end marker included, inside an APP1 segment), with a
+    phone's appended video (bytes after the end marker), and as PNG."""
+    cv2 = pytest.importorskip("cv2")
+    photo = (shared_path("aflw2000_3d_sample") / "image00050.jpg").read_bytes()
+    img = cv2.imdecode(np.frombuffer(photo, np.uint8), cv2.IMREAD_COLOR)
+
+    def jpeg(im, *params):
+        return cv2.imencode(".jpg", im, list(params))[1].tobytes()
+
+    thumb = jpeg(img[::8, ::8])
+    exif = photo[:2] + b"\xff\xe1" + (len(thumb) + 8).to_bytes(2, "big") + b"Exif\0\0" \
+        + thumb + photo[2:]
+    video = np.random.default_rng(0).integers(0, 256, 50_000, dtype=np.uint8).tobytes()
+    return {"photo": photo, "progressive": jpeg(img, cv2.IMWRITE_JPEG_PROGRESSIVE, 1),
+            "restart markers": jpeg(img, cv2.IMWRITE_JPEG_RST_INTERVAL, 2),
+            "exif thumbnail": exif, "appended video": exif + video,
+            "png": cv2.imencode(".png", img)[1].tobytes()}
+
+
+def test_truncated_images_are_refused_before_decoding(tmp_path, capfd):
+    """A JPEG or PNG file cut anywhere after its signature (an interrupted copy) is a one-line
+    RGBDFormatError naming it, and libjpeg / libpng print nothing (they are not called);
+    complete files of every layout read as before. Reference: Pillow, which decodes the whole
+    file and refuses exactly the same cuts (checked on every 53rd cut point of each file)."""
+    import io
+
+    from PIL import Image
+
+    def pillow_reads(data: bytes) -> bool:
+        try:
+            with Image.open(io.BytesIO(data)) as im:
+                im.load()
+            return True
+        except (OSError, SyntaxError):  # Pillow's error for a broken PNG chunk is a SyntaxError
+            return False
+
+    path = tmp_path / "image"
+    for name, data in _complete_images().items():
+        assert pillow_reads(data) and not R._truncated(data), name
+        path.write_bytes(data)
+        assert R.read_image(path).ndim == 3, name
+        cuts = range(8, len(data) - 1 if name != "appended video" else len(data) - 50_000, 53)
+        for cut in cuts:
+            assert R._truncated(data[:cut]) == (not pillow_reads(data[:cut])), (name, cut)
+        path.write_bytes(data[:cuts[len(cuts) // 2]])
+        with pytest.raises(R.RGBDFormatError, match="truncated: the file ends before its image"):
+            R.read_image(path)
+    path.write_bytes(b"")
+    with pytest.raises(R.RGBDFormatError, match="empty file"):
+        R.read_image(path)
+    assert capfd.readouterr().err == ""
+
+
 def test_synthetic_adapter():
     """``open_rgbd("synthetic:N:SEED")`` wraps phjax.vision.synthetic_rgbd: BGR, intrinsics, GT."""
     from phjax.vision.synthetic_rgbd import synthetic_rgbd_sequence
