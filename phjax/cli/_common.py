@@ -155,7 +155,7 @@ def format_user_error(err: BaseException) -> str:
     return " ".join(text.split())  # one line, whatever the message held
 
 
-def read_input(path, format: str = "auto", *, min_poses: int = 2):
+def read_input(path, format: str = "auto", *, min_poses: int = 2, measurements: bool = False):
     """Read a trajectory file through :func:`phjax.io.read_trajectory` for a command.
 
     Files that hold several trajectories (CWI navigation CSVs: one per participant; AVTrack360
@@ -167,13 +167,18 @@ def read_input(path, format: str = "auto", *, min_poses: int = 2):
         format: ``"auto"`` or a :mod:`phjax.io` format name.
         min_poses: the least number of samples with a valid position or quaternion (lost
             frames do not count).
+        measurements: the rows go to the filters as measurements (``smooth``, ``tune
+            --measured``), which start from a whole pose: a file that measures both parts but
+            never in one row is an error (a ground truth, sampled by the simulated sensor, is
+            not checked).
 
     Returns:
         The :class:`~phjax.io.Trajectory`.
 
     Raises:
         FileNotFoundError, IsADirectoryError: no such file / a folder.
-        phjax.io.TrajectoryFormatError: empty, undetectable, malformed or too short.
+        phjax.io.TrajectoryFormatError: empty, undetectable, malformed, too short, or both
+            parts measured but never in one row.
     """
     import numpy as np
 
@@ -192,25 +197,41 @@ def read_input(path, format: str = "auto", *, min_poses: int = 2):
             raise
         raise TrajectoryFormatError(str(e).replace("pass format= one of", "pass --format, one of"),
                                     path=path) from None
-    valid = np.isfinite(traj.quaternions).all(-1) | np.isfinite(traj.positions).all(-1)
-    n = int(np.count_nonzero(valid))
+    q_ok, p_ok = np.isfinite(traj.quaternions).all(-1), np.isfinite(traj.positions).all(-1)
+    n = int(np.count_nonzero(q_ok | p_ok))
     if n < min_poses:
         lost = traj.num_samples - n
         raise TrajectoryFormatError(
             f"{os.fspath(path)}: {n} pose(s)" + (f" ({lost} lost frame(s))" if lost else "")
             + f"; at least {min_poses} are needed", path=path)
+    if measurements and p_ok.any() and q_ok.any() and not (p_ok & q_ok).any():
+        raise TrajectoryFormatError(
+            f"{os.fspath(path)}: no row holds both a position and an orientation "
+            f"({int(p_ok.sum())} position-only, {int(q_ok.sum())} orientation-only rows); the "
+            "filters start from a whole pose: merge the parts into one row per time, or give "
+            "one part alone", path=path)
     return traj
 
 
-def check_output(path, what: str = "output") -> Path:
+def check_output(path, what: str = "output", inputs=()) -> Path:
     """Fail early (before any computation) when ``path`` cannot be written: its folder is
-    missing or it is a folder."""
+    missing or it is a folder, or it is one of the command's ``inputs`` (files named on the
+    command line, ``FILE#NAME`` included), which writing it would destroy."""
+    from ..io import split_trajectory_name
+
     p = Path(path)
     if p.is_dir():
         raise IsADirectoryError(21, f"Is a directory (expected an {what} file name)", str(path))
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise FileNotFoundError(2, f"No such folder for the {what} file", str(parent))
+    if p.exists():
+        for given in inputs:
+            source = Path(split_trajectory_name(given)[0])
+            if source.exists() and source.resolve() == p.resolve():
+                named = "" if os.fspath(given) == os.fspath(path) else f" {given}"
+                raise ValueError(f"{path}: is the input file{named}; writing the {what} "
+                                 "would destroy it: name another file")
     return p
 
 
@@ -232,7 +253,8 @@ def check_plot_output(path) -> Path:
     return check_output(p, "plot")
 
 
-def check_trajectory_output(path, format: str = "auto", option: str | None = None) -> Path:
+def check_trajectory_output(path, format: str = "auto", option: str | None = None,
+                            inputs=()) -> Path:
     """:func:`check_output` for a trajectory file, whose format must also follow from its
     extension (``.tum`` / ``.txt`` / ``.csv``) or from ``option`` (e.g. ``--out-format``),
     checked before any work; the error names the command line's ways, not the library's."""
@@ -244,7 +266,7 @@ def check_trajectory_output(path, format: str = "auto", option: str | None = Non
         ways = f"pass {option} tum, euroc or csv, or " if option else ""
         raise ValueError(str(e).split("; pass format=")[0]
                          + f"; {ways}name the file .tum, .txt or .csv") from None
-    return check_output(path)
+    return check_output(path, inputs=inputs)
 
 
 #: working memory per item of the commands' arrays, bytes (generous: inputs, outputs, the

@@ -67,12 +67,10 @@ def cmd_head_pose(args) -> int:
 
     images = _images(args.images)
     if args.output:
-        out = check_output(args.output)
-        if out.suffix.lower() in IMAGE_SUFFIXES:  # "-o photos/*.jpg" puts a photo after -o
+        if Path(args.output).suffix.lower() in IMAGE_SUFFIXES:  # "-o photos/*.jpg": a photo
             raise ValueError(f"-o {args.output}: the output is a CSV table, not an image "
                              f"(did the shell expand a pattern after -o?)")
-        if out.exists() and any(out.resolve() == image.resolve() for image in images):
-            raise ValueError(f"-o {args.output}: is one of the input images")
+        check_output(args.output, inputs=images)
     _require("cv2")
     needed = [(YUNET_ONNX, "yunet_face_detection")]  # (model, its folder in ../shared/data)
     if args.method == "net":

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 
@@ -74,6 +75,8 @@ def cmd_track_rgbd(args) -> int:
     check_trajectory_output(args.output)
     if args.raw:
         check_trajectory_output(args.raw)
+        if Path(args.raw).resolve() == Path(args.output).resolve():
+            raise ValueError(f"--raw {args.raw}: the same file as -o; name another file")
     if str(args.source) == "synthetic" or str(args.source).startswith("synthetic:"):
         from ..live._sources import synthetic_spec
 

@@ -172,7 +172,7 @@ def cmd_smooth(args) -> int:
     from ..tracking.tracker import reconstruct, track
     from ._tune import config_from_args, with_noise_from_args
 
-    check_trajectory_output(args.output, args.out_format, "--out-format")
+    check_trajectory_output(args.output, args.out_format, "--out-format", inputs=[args.input])
     config = config_from_args(args)
     if args.lookahead is not None:
         lookahead = check_lookahead(args.lookahead)
@@ -185,7 +185,7 @@ def cmd_smooth(args) -> int:
 
         config = eqx.tree_at(lambda c: c.lookahead, TrackerConfig() if config is None else config,
                              lookahead)
-    traj = read_input(args.input, args.format)
+    traj = read_input(args.input, args.format, measurements=True)
     span = float(traj.times[-1] - traj.times[0])
     check_fits({f"--rate {args.rate:g} Hz over {span:.3g} s":
                 (span * args.rate, BYTES_PER_RENDER_SAMPLE["smooth"])})

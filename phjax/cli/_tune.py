@@ -184,7 +184,7 @@ def cmd_tune(args) -> int:
     params = default_parameters(start) if not args.parameters else tuple(
         p.strip() for p in args.parameters.split(",") if p.strip())
     check_parameters(start, params)  # unknown names: one-line error before data preparation
-    check_output(args.output)
+    check_output(args.output, inputs=[*args.train, *(args.measured or [])])
     trajs = [read_input(f, args.format) for f in args.train]
     sensor = SensorModel(rate=args.camera_rate, sigma_p=args.sigma_p / 1e3,
                          sigma_r=float(np.deg2rad(args.sigma_r)), dropout=args.dropout,
@@ -195,7 +195,7 @@ def cmd_tune(args) -> int:
         recs = []
         for gt_file, gt, f in zip(args.train, trajs, args.measured):
             try:
-                recs.append(measured_recording(gt, read_input(f, args.format),
+                recs.append(measured_recording(gt, read_input(f, args.format, measurements=True),
                                                render_rate=args.rate, seconds=args.seconds,
                                                align=args.align))
             except ValueError as err:

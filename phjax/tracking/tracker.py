@@ -670,9 +670,46 @@ def _prepare_recording(times, positions, quaternions, render_times):
         warnings.warn(f"dropping {int(dup.sum())} measurement(s) with duplicate timestamps "
                       "(keeping the first)", TrajectoryWarning, stacklevel=3)
         times, positions, quaternions = times[~dup], positions[~dup], quaternions[~dup]
+    # quaternions of any norm: those far from unit scaled (host side, float64) so that their
+    # squares neither underflow nor overflow in float32 (a norm of 1e-19 made every output NaN)
+    q_ok = np_valid_quaternions(quaternions)
+    big = np.max(np.abs(np.where(q_ok[:, None], quaternions, 1.0)), -1, keepdims=True)
+    far = (big < 1e-6) | (big > 1e6)
+    quaternions = np.where(far, quaternions / big, quaternions)
+    _warn_unused_parts(times, positions, quaternions)
     positions, quaternions, one_part = complete_one_part(positions, quaternions)
     origin = times[0]
     return times - origin, positions, quaternions, render_times - origin, one_part
+
+
+def _warn_unused_parts(times, positions, quaternions) -> None:
+    """A :class:`~phjax.io.TrajectoryWarning` for measurements the filters cannot use: they
+    start from the first whole pose (position and orientation both measured; a recording that
+    measures only one part is tracked as such, see :func:`complete_one_part`), so one-part rows
+    before it are lost, and a recording whose rows each hold only one part gives all NaN."""
+    p_ok = np.isfinite(positions).all(-1)
+    q_ok = np_valid_quaternions(quaternions)
+    if not (p_ok.any() and q_ok.any()):
+        if not (p_ok.any() or q_ok.any()):
+            warnings.warn("no measurement holds a valid position or orientation: the output "
+                          "is all NaN", TrajectoryWarning, stacklevel=4)
+        return  # one part alone: tracked as such
+    whole = p_ok & q_ok
+    if not whole.any():
+        warnings.warn(
+            f"no measurement holds both a position and an orientation "
+            f"({int(p_ok.sum())} position-only, {int(q_ok.sum())} orientation-only): the "
+            "filters start from a whole pose, so the output is all NaN (merge the parts into "
+            "one row per time, or give one part alone)", TrajectoryWarning, stacklevel=4)
+        return
+    first = int(np.argmax(whole))
+    early = int(np.count_nonzero(p_ok[:first] | q_ok[:first]))
+    if early:
+        warnings.warn(
+            f"{early} one-part measurement(s) before the first whole pose (position and "
+            f"orientation both measured, {times[first] - times[0]:.3g} s after the first "
+            "measurement) are not used: the filters start from a whole pose",
+            TrajectoryWarning, stacklevel=4)
 
 
 def complete_one_part(positions: np.ndarray, quaternions: np.ndarray):

@@ -150,6 +150,10 @@ BAD_ARGUMENTS = [
      "argument --measurement-noise: stds must be positive and finite"),
     (["smooth", "FILE", "-o", "OUT.txt", "--measurement-noise", "auto"],
      "--measurement-noise auto: cannot estimate the noise from this input"),  # 2 poses
+    # an output that names an input would destroy it
+    (["smooth", "FILE", "-o", "FILE"], "good.txt: is the input file; writing the output would"),
+    (["tune", "FILE", "--lambda", "1", "-o", "FILE"], "good.txt: is the input file; writing"),
+    (["track-rgbd", "synthetic:2", "-o", "OUT.tum", "--raw", "OUT.tum"], "the same file as -o"),
     ([], "the following arguments are required: command"),
     (["frobnicate"], "invalid choice: 'frobnicate'"),
 ]
@@ -200,6 +204,60 @@ def test_bad_arguments_give_one_line_and_status_2(tmp_path, capsys, argv, messag
     _assert_one_line_error(rc, stdout, err, message.replace("NOFOLDER",
                                                             str(tmp_path / "no_such_folder")))
     assert not any(tmp_path.glob("result*"))
+
+
+def test_an_output_naming_the_input_leaves_it_unchanged(tmp_path, capsys):
+    good = tmp_path / "good.txt"
+    good.write_text(TUM_ROW + "2.0 0 0 0 0 0 0 1\n")
+    before = good.read_bytes()
+    for argv in (["smooth", str(good), "-o", str(good)],
+                 ["smooth", f"{good}", "-o", str(tmp_path / "." / "good.txt")]):
+        rc, stdout, err = _run(capsys, argv)
+        _assert_one_line_error(rc, stdout, err, "is the input")
+    assert good.read_bytes() == before
+
+
+def _one_part_rows(n=120, leading=None):
+    """A 30 Hz TUM recording whose rows alternate a position only and an orientation only (a
+    log merged from two sensors), or, with ``leading``, whose first ``leading`` rows hold only a
+    position and the rest whole poses."""
+    import numpy as np
+
+    t = 1.0 + np.arange(n) / 30
+    rows = []
+    for i, ti in enumerate(t):
+        p, q = f"{0.01 * np.sin(ti):.6f} 0 0", f"0 0 {0.1 * np.sin(ti):.6f} 1"
+        if leading is None:
+            part = (p, "nan nan nan nan") if i % 2 == 0 else ("nan nan nan", q)
+        else:
+            part = (p, "nan nan nan nan") if i < leading else (p, q)
+        rows.append(f"{ti:.6f} {part[0]} {part[1]}\n")
+    return "".join(rows)
+
+
+def test_measurements_never_holding_a_whole_pose_are_refused(tmp_path, capsys):
+    """The filters start from a whole pose: a file whose rows each hold one part would give an
+    empty output (it wrote a header and exit 0); as measurements it is one line, exit 2. The
+    same file as ground truth (sampled by the simulated sensor) is not refused."""
+    f = tmp_path / "merged.txt"
+    f.write_text(_one_part_rows())
+    out = tmp_path / "out.txt"
+    for argv in (["smooth", str(f), "-o", str(out)],
+                 ["tune", str(f), "--measured", str(f), "--lambda", "1",
+                  "-o", str(tmp_path / "c.json")]):
+        rc, stdout, err = _run(capsys, argv)
+        _assert_one_line_error(rc, stdout, err, str(f), "no row holds both a position and an "
+                               "orientation (60 position-only, 60 orientation-only rows)")
+    assert not out.exists()
+
+
+def test_one_part_rows_before_the_first_whole_pose_are_named(tmp_path, capsys):
+    f = tmp_path / "late.txt"
+    f.write_text(_one_part_rows(leading=45))
+    rc, stdout, err = _run(capsys, ["smooth", str(f), "-o", str(tmp_path / "out.txt")])
+    assert rc == 0, err
+    assert "45 one-part measurement(s) before the first whole pose" in err
+    assert "1.5 s after the first measurement" in err
 
 
 def test_demo_curve_reads_the_named_file_without_synthetic_fallback(tmp_path, capsys):

@@ -1,5 +1,8 @@
 """The streaming tracker, the batch track/reconstruct API and the C1 orientation curves."""
 
+import re
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -680,6 +683,53 @@ def test_unsorted_and_duplicate_times_warn_as_trajectory_warnings():
         pj.track(t, p, q, np.linspace(0, 0.13, 5))
     assert {str(w.message).split(";")[0].split(" (")[0] for w in rec} == {
         "measurement times are not sorted", "dropping 1 measurement(s) with duplicate timestamps"}
+
+
+def test_measurements_the_filters_cannot_use_are_named():
+    """The filters start from a whole pose (position and orientation both measured): one-part
+    rows before the first one, rows that each hold one part, and a recording of lost frames
+    are each named by a :class:`phjax.io.TrajectoryWarning` (they were silent: an all-NaN
+    output, or the first seconds missing)."""
+    from phjax.io import TrajectoryWarning
+
+    t = np.arange(6) / 30
+    p = np.zeros((6, 3))
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (6, 1))
+    nan3, nan4 = np.full(3, np.nan), np.full(4, np.nan)
+    r = np.linspace(0, 0.16, 5)
+    late = q.copy()
+    late[:2] = nan4
+    merged_p, merged_q = p.copy(), q.copy()
+    merged_p[1::2], merged_q[::2] = nan3, nan4
+    cases = {
+        "2 one-part measurement(s) before the first whole pose (position and orientation both "
+        "measured, 0.0667 s after": (p, late),
+        "no measurement holds both a position and an orientation (3 position-only, "
+        "3 orientation-only)": (merged_p, merged_q),
+        "no measurement holds a valid position or orientation": (p * np.nan, q * np.nan),
+    }
+    for message, (pp, qq) in cases.items():
+        with pytest.warns(TrajectoryWarning, match=re.escape(message)):
+            pj.track(t, pp, qq, r)
+    with warnings.catch_warnings():  # whole poses, or one part alone: nothing to say
+        warnings.simplefilter("error")
+        for pp, qq in ((p, q), (p * np.nan, q), (p, q * np.nan)):
+            pj.track(t, pp, qq, r)
+
+
+def test_quaternions_of_any_norm_in_float32():
+    """Quaternions scaled by 1e-30 ... 1e30 give the unit quaternions' stream in float32 (a norm
+    of 1e-19 made every output NaN, positions included: its square underflows)."""
+    rng = np.random.default_rng(4)
+    t = np.arange(40) / 30
+    p = np.cumsum(rng.normal(size=(40, 3)) * 1e-3, 0)
+    q = np.asarray(pj.quat_from_rotvec(np.cumsum(rng.normal(size=(40, 3)) * 0.02, 0)))
+    r = np.linspace(0, t[-1], 60)
+    P0, Q0 = (np.asarray(x) for x in pj.track(t, p, q, r, dtype=jnp.float32))
+    for scale in (1e-30, 1e-19, 1e19, 1e30):
+        P, Q = (np.asarray(x) for x in pj.track(t, p, q * scale, r, dtype=jnp.float32))
+        np.testing.assert_allclose(P, P0, rtol=0, atol=1e-6, err_msg=str(scale))
+        np.testing.assert_allclose(Q, Q0, rtol=0, atol=1e-6, err_msg=str(scale))
 
 
 def test_config_values_the_stream_cannot_use_are_refused():
