@@ -270,5 +270,15 @@ class Tiered:
             except Exception as e:  # noqa: BLE001
                 self.error = e
 
-        self._thread = threading.Thread(target=optimise, name="phjax-compile")
+        self._thread = threading.Thread(target=optimise, name=COMPILE_THREAD)
         self._thread.start()
+
+
+#: the name of :class:`Tiered`'s background compilation threads
+COMPILE_THREAD = "phjax-compile"
+
+
+def background_compilations() -> list[threading.Thread]:
+    """:class:`Tiered`'s background compilations still running (a process that exits waits
+    for them: they run in XLA, which must not be torn down under them)."""
+    return [th for th in threading.enumerate() if th.name == COMPILE_THREAD and th.is_alive()]

@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import gc
 import math
+import os
 import signal
 import sys
 import threading
@@ -56,6 +57,34 @@ def _abandon(lt, source) -> None:
             source.close()
     except Exception:  # noqa: BLE001 - best effort on the way out; the first error is reported
         pass
+
+
+def _finish_compilations() -> None:
+    """Wait for the tracker's background compilation (a few seconds of one core after an
+    early stop) with Ctrl-C and SIGTERM held off: the interpreter waits for it at exit in any
+    case, and a second Ctrl-C in that wait aborted the process from inside XLA (``terminate
+    called``). A signal in the wait says what is happening, once."""
+    from .._jit import background_compilations
+
+    threads = background_compilations()
+    if not threads or threading.current_thread() is not threading.main_thread():
+        return
+    said = False
+
+    def hold(signum, frame):
+        nonlocal said
+        if not said:
+            print("phjax live: finishing a background compilation, a few seconds",
+                  file=sys.stderr, flush=True)
+            said = True
+
+    held = {sig: signal.signal(sig, hold) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        for th in threads:
+            th.join()
+    finally:
+        for sig, handler in held.items():
+            signal.signal(sig, handler)
 
 
 def noise_window(text: str) -> int:
@@ -120,6 +149,11 @@ def cmd_live(args) -> int:
                       flush=True)
 
     try:
+        replayed = os.fspath(args.source).removeprefix("poses:")
+        if args.log and os.path.isfile(replayed) and os.path.isfile(args.log) \
+                and os.path.samefile(replayed, args.log):
+            raise ValueError(f"--log {args.log}: is the replayed pose file; writing the log "
+                             "would destroy it: name another file")
         import jax
 
         jax.config.update("jax_enable_x64", True)
@@ -146,11 +180,13 @@ def cmd_live(args) -> int:
         running = True
     except _Interrupted as e:
         _abandon(lt, source)
+        _finish_compilations()
         restore()
         print(f"phjax live: stopped by {e} during the start; nothing was sent", file=sys.stderr)
         return 0
     except (ValueError, OSError) as e:  # SourceError and OutputError among them
         _abandon(lt, source)
+        _finish_compilations()
         restore()
         print(f"phjax live: error: {e}", file=sys.stderr)
         return 2
@@ -179,6 +215,7 @@ def cmd_live(args) -> int:
         lt.stop(timeout=2.0)
     except Exception as e:  # noqa: BLE001 - a failing camera at run time
         print(f"\nphjax live: error: {e}", file=sys.stderr)
+        _finish_compilations()
         return 1
     finally:
         restore()
@@ -207,6 +244,7 @@ def cmd_live(args) -> int:
               + (f"{u['at_stop']} read as the run stopped, " if u["at_stop"] else "")
               + f"dropped {lt.source.dropped_text()}; {frame}",
               file=sys.stderr)
+    _finish_compilations()
     return 0
 
 

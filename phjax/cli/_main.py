@@ -225,7 +225,11 @@ def main(argv: list[str] | None = None) -> int:
     file, folder, permissions) raised by a command prints ONE line
     ``phjax <command>: error: ...`` on stderr and returns 2; no traceback.
     """
-    parser = build_parser()
+    try:  # importing the commands (JAX among them) takes about a second: Ctrl-C is one line
+        parser = build_parser()
+    except KeyboardInterrupt:
+        print("\nphjax: interrupted", file=sys.stderr)
+        return 130
     try:
         args, extra = parser.parse_known_args(argv)
         if extra:  # named by the command they were given to, as its other usage errors

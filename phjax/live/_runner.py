@@ -323,6 +323,7 @@ class LiveTracker:
                 self._outputs.append(out if isinstance(out, Output) else open_output(out))
             if log is not None:
                 self._log = TumLog(log)
+            self._check_feedback()
         except BaseException:
             self._close_outputs(raise_first=False)
             raise
@@ -387,6 +388,7 @@ class LiveTracker:
                 self.source.launch()
             self._warm_up()
             self.source.open()
+            self._check_feedback()
         except BaseException:
             self._cleanup()
             raise
@@ -409,6 +411,13 @@ class LiveTracker:
         for th in self._threads:
             th.start()
         return self
+
+    def _check_feedback(self) -> None:
+        """A UDP source must not receive this tracker's own outputs (checked once its socket
+        is open: here, or in :meth:`start`)."""
+        check = getattr(self.source, "check_outputs", None)
+        if check is not None:
+            check(self._outputs)
 
     def _warm_up(self) -> None:
         s = LiveStream(self.base_config)

@@ -999,6 +999,10 @@ class RealSenseSource(Source):
 
 
 # ------------------------------------------------------------------------------- parsing
+#: suffixes of the pose files phjax.io reads: never a video (``poses:FILE`` replays them)
+_POSE_FILE_SUFFIXES = (".txt", ".tum", ".csv", ".json")
+
+
 def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: float = 60.0,
                 monocular: str = "net", head_size: float | None = None,
                 worker: bool = True, format: str = "auto") -> Source:
@@ -1060,6 +1064,9 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
             raise SourceError(str(e)) from None
         return RGBDReplaySource(seq, model_dir=model_dir, name=f"RGB-D recording {path}")
     if path.is_file():
+        if path.suffix.lower() in _POSE_FILE_SUFFIXES:  # FFmpeg would "play" a text file
+            raise SourceError(f"{spec}: a pose file is replayed with poses:{spec} (a file "
+                              "named alone is played as a video)")
         return VideoSource(os.fspath(path), ipd=ipd, fov=fov, model_dir=model_dir,
                            monocular=monocular, head_size=head_size)
     if path.suffix or os.sep in spec or (os.altsep and os.altsep in spec):

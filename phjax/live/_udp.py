@@ -74,8 +74,13 @@ REASONS = ("wrong size", "non-finite", "out of range")
 STILL_FRAMES = 2.0
 #: datagrams per frame before they are measured (opentrack: 250 Hz for a 30 Hz tracker)
 DEFAULT_DATAGRAMS_PER_FRAME = 8
+#: datagrams further apart than this (s; opentrack repeats every 4 ms) are one per frame
+REPEAT_INTERVAL = 0.012
 #: changes of the values whose intervals and datagram counts give the sender's frame (medians)
 _FRAME_WINDOW = 15
+#: senders remembered (a new one is reported; a sender using a new port per datagram would
+#: otherwise grow the set without bound)
+_MAX_SENDERS = 64
 #: most datagrams read per wake-up of the read loop (the newest valid one is used)
 _MAX_DRAIN = 256
 #: receive buffer: larger datagrams are truncated to this and reported as the wrong size
@@ -103,6 +108,16 @@ def opentrack_pose(values) -> tuple[np.ndarray, np.ndarray]:
 
 def _stderr_report(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
+
+
+def _is_local(ip: str, family: int) -> bool:
+    """Whether ``ip`` is an address of this machine (a socket can bind to it)."""
+    try:
+        with socket.socket(family, socket.SOCK_DGRAM) as probe:
+            probe.bind((ip, 0))
+        return True
+    except OSError:
+        return False
 
 
 class UdpSource(Source):
@@ -145,14 +160,18 @@ class UdpSource(Source):
         self.at_stop = 0
         self.dropped: Counter = Counter()
         self.last_sender: str | None = None
-        #: every sender seen (host:port)
-        self.senders: set[str] = set()
+        #: the senders seen (host:port; the latest :data:`_MAX_SENDERS`, oldest first)
+        self.senders: dict[str, None] = {}
+        self._last_sender_report: float | None = None
+        self._unreported_senders = 0
         self._last_values: np.ndarray | None = None  # of the last valid datagram
         self._last_change: float | None = None  # arrival of the last new values
         self._since_change = 0  # valid datagrams since the last new values
         self._since_taken = 0  # valid datagrams since the last measurement taken
         self._change_intervals: deque = deque(maxlen=_FRAME_WINDOW)
         self._change_counts: deque = deque(maxlen=_FRAME_WINDOW)
+        self._arrival_intervals: deque = deque(maxlen=_FRAME_WINDOW)  # of valid datagrams
+        self._last_arrival: float | None = None
         self._last_report: float | None = None
         self._unreported = 0
 
@@ -217,6 +236,29 @@ class UdpSource(Source):
             self.sock.close()
             self.sock = None
 
+    def check_outputs(self, outputs) -> None:
+        """A :class:`SourceError` when one of ``outputs`` (opened, UDP) sends to this source's
+        own socket: the stream would read its own poses back as measurements and drift away
+        (``udp://:4242`` with ``-o opentrack://127.0.0.1:4242``, opentrack's port for both).
+        Nothing to check before :meth:`open`."""
+        if self.sock is None:
+            return
+        host, port = self.sock.getsockname()[:2]
+        for out in outputs:
+            sock = getattr(out, "sock", None)
+            try:
+                peer = sock.getpeername()[:2] if sock is not None else None
+            except OSError:
+                continue
+            if peer is None or peer[1] != port:
+                continue
+            if host in ("0.0.0.0", "::") or host == peer[0]:
+                if _is_local(peer[0], sock.family):
+                    raise SourceError(
+                        f"{getattr(out, 'url', out)} sends to port {port}, where this run's "
+                        f"source listens ({self.name}): the stream would read its own poses "
+                        "back and drift away; send to another port")
+
     # ------------------------------------------------------------------ reading
     def run(self, clock, t0, stop, emit) -> None:
         if getattr(clock, "virtual", False):
@@ -265,12 +307,11 @@ class UdpSource(Source):
                 continue
             if self.last_sender is not None and sender != self.last_sender \
                     and sender not in self.senders:
-                # a restarted tracker, or two sending to one port (poses interleave): one
-                # line per new sender
-                self.report(f"phjax live: {self.name}: poses now from {sender} (before: "
-                            f"{self.last_sender}); if two trackers send to this port, their "
-                            "poses are mixed into one stream: give each its own port")
-            self.senders.add(sender)
+                self._new_sender(sender)
+            self.senders.pop(sender, None)
+            self.senders[sender] = None
+            if len(self.senders) > _MAX_SENDERS:
+                del self.senders[next(iter(self.senders))]
             self.last_sender = sender
             if not self._is_measurement(t, values):
                 self.repeated += 1
@@ -290,15 +331,25 @@ class UdpSource(Source):
 
     @property
     def datagrams_per_frame(self) -> float:
-        """The median number of datagrams between changes of the values."""
-        if not self._change_counts:
-            return float(DEFAULT_DATAGRAMS_PER_FRAME)
-        return float(np.median(self._change_counts))
+        """The median number of datagrams between changes of the values; before two changes,
+        :data:`DEFAULT_DATAGRAMS_PER_FRAME` (opentrack's repeats), or 1 when the datagrams
+        come further apart than :data:`REPEAT_INTERVAL` (a sender that sends once per frame:
+        taken for opentrack, a still head at the start was measured at 2 Hz, and the motion
+        that followed lagged by about 100 ms)."""
+        if self._change_counts:
+            return float(np.median(self._change_counts))
+        if len(self._arrival_intervals) >= 3 \
+                and np.median(self._arrival_intervals) > REPEAT_INTERVAL:
+            return 1.0
+        return float(DEFAULT_DATAGRAMS_PER_FRAME)
 
     def _is_measurement(self, t: float, values: np.ndarray) -> bool:
         """Whether a valid datagram read at ``t`` is a new measurement (module docs)."""
         last = self._last_values
         self._last_values = values
+        if self._last_arrival is not None:
+            self._arrival_intervals.append(t - self._last_arrival)
+        self._last_arrival = t
         self._since_change += 1
         self._since_taken += 1
         if last is None or not np.array_equal(values, last):
@@ -333,6 +384,22 @@ class UdpSource(Source):
             return self._drop("out of range", sender, f"value out of range ({what}; limits "
                               f"+-{MAX_POSITION_CM:g} cm, +-{MAX_ANGLE_DEG:g} deg)")
         return values
+
+    def _new_sender(self, sender: str) -> None:
+        """Say that poses come from a new sender (a restarted tracker, or two sending to one
+        port, whose poses then interleave), at most once per ``report_interval``."""
+        now = time.monotonic()
+        if self._last_sender_report is not None \
+                and now - self._last_sender_report < self.report_interval:
+            self._unreported_senders += 1
+            return
+        more = (f"; {self._unreported_senders} other new senders since the last report (a "
+                "sender that sends each datagram from a new port?)"
+                if self._unreported_senders else "")
+        self._last_sender_report, self._unreported_senders = now, 0
+        self.report(f"phjax live: {self.name}: poses now from {sender} (before: "
+                    f"{self.last_sender}){more}; if two trackers send to this port, their "
+                    "poses are mixed into one stream: give each its own port")
 
     def _drop(self, reason: str, sender: str, what: str) -> None:
         self.dropped[reason] += 1

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import struct
 import subprocess
@@ -129,6 +130,10 @@ def test_acceptance_synthetic_opentrack(listener, model_cache, tmp_path, cli_jax
     (["live", "poses:{poses}", "--output", "opentrack://127.0.0.1:4242?from={busy}"],
      "cannot use local port"),
     (["live", "poses:{poses}", "--log", "/nonexistent/dir/x.tum"], "cannot write the log"),
+    # the log replaced the recording it replayed
+    (["live", "poses:{poses}", "--log", "{poses}"], "p.tum: is the replayed pose file"),
+    # FFmpeg "played" a pose file named without poses: for 27 s, sending nothing
+    (["live", "{poses}"], "p.tum: a pose file is replayed with poses:"),
     (["live", "poses:{poses}", "--rate", "0"], "rate"),
     (["live", "poses:{poses}", "--noise-window", "3"],
      "argument --noise-window: must be 0 (off) or an integer >= 8, got '3'"),
@@ -249,6 +254,40 @@ def test_signal_stops_cleanly(sig, ignored, listener, tmp_path):  # noqa: F811
     sent = read_tum(log)
     assert sent.num_samples == len(listener.packets) > 20
     assert "sent" in err
+
+
+def test_ctrl_c_while_the_background_compilation_ends_is_harmless(tmp_path):
+    """After a short run the tracker's optimised program is still compiling (3-4 s of one core;
+    the interpreter waits for it at exit). A Ctrl-C in that wait aborted the process from
+    inside XLA ("terminate called ...", SIGABRT) once the stop handlers were restored; now the
+    command waits for it itself with the signals held, says so once, and exits 0. Run as a
+    process at XLA's default level (the suite's -O0 flag has no background compilation)."""
+    poses = tmp_path / "p.tum"
+    write_tum(poses, Trajectory(*smooth_motion(300, 30.0)))
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = env.get("XLA_FLAGS", "").replace("--xla_backend_optimization_level=0", "")
+    proc = subprocess.Popen([sys.executable, "-m", "phjax", "live", f"poses:{poses}",
+                             "--duration", "0.3", "--quiet"], stderr=subprocess.PIPE, text=True,
+                            env=env)
+    lines = []
+    try:
+        for line in proc.stderr:  # the run's summary: the wait for the compilation follows
+            lines.append(line)
+            if line.startswith("phjax live: sent"):
+                break
+        for _ in range(2):
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                time.sleep(0.2)
+        rest = proc.communicate(timeout=120)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    err = "".join(lines) + rest
+    assert proc.returncode == 0, err
+    assert "terminate" not in err and "Traceback" not in err, err
+    assert rest.count("finishing a background compilation") <= 1, err
 
 
 def test_help_text():

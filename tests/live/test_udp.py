@@ -23,7 +23,15 @@ from live_helpers import UdpListener, angle_steps
 from phjax._np_quat import np_axis_quat, np_qconj, np_qmul
 from phjax.cli import main
 from phjax.io import read_trajectory
-from phjax.live import RealClock, SourceError, VirtualClock, open_source, opentrack_values
+from phjax.live import (
+    OpenTrackOutput,
+    RealClock,
+    SourceError,
+    VirtualClock,
+    open_source,
+    opentrack_values,
+)
+from phjax.live import _udp as udp
 from phjax.live._udp import MAX_ANGLE_DEG, MAX_POSITION_CM, UdpSource, opentrack_pose
 
 PACK = struct.Struct("<6d")
@@ -123,6 +131,40 @@ def test_port_in_use_is_one_line_and_exit_2(cli_jax_config, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2
     assert len(err) == 1 and err[0].startswith("phjax live: error:") and "cannot listen" in err[0]
+
+
+def _free_udp_port(host="127.0.0.1") -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("listen, send", [("127.0.0.1", "127.0.0.1"), ("", "127.0.0.1"),
+                                          ("", "127.0.0.2")])
+def test_an_output_to_the_sources_own_port_is_refused(cli_jax_config, capsys, listen, send):
+    """``udp://:4242 -o opentrack://127.0.0.1:4242`` (opentrack's port for both): the stream
+    read its own poses back as measurements and drifted away (x 3.5 x, yaw 6 x beyond what
+    was sent, turning on after the sender stopped). One line, exit 2, before the start; an
+    output to another port or to another machine's address is fine."""
+    port = _free_udp_port()
+    rc = main(["live", f"udp://{listen}:{port}", "-o", f"opentrack://{send}:{port}",
+               "--duration", "1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2, err
+    assert len(err) == 1 and err[0] == (
+        f"phjax live: error: opentrack://{send}:{port} sends to port {port}, where this run's "
+        f"source listens (opentrack UDP udp://{listen or '0.0.0.0'}:{port}): the stream would "
+        "read its own poses back and drift away; send to another port"), err
+    src = UdpSource("127.0.0.1", 0)
+    src.open()
+    try:  # another port, or the same port number on an address of no interface here
+        others = [OpenTrackOutput("127.0.0.1", _free_udp_port()),
+                  OpenTrackOutput("192.0.2.1", src.port)]  # TEST-NET-1: never local
+        src.check_outputs(others)
+    finally:
+        src.close()
+        for out in others:
+            out.close()
 
 
 @pytest.mark.parametrize("value", ["-1", "200.5", "nan", "inf"])
@@ -384,6 +426,34 @@ def test_a_stalled_sender_is_not_a_still_head():
         src.close()
     xs = [round(m.position[0] * 100, 9) for m in got]
     assert xs == [0.0, 1.0, 2.0, 3.0] and src.repeated == 6, (xs, src.stats())
+
+
+def test_a_sender_of_one_datagram_per_frame_still_at_the_start():
+    """A tracker that sends once per 30 Hz frame and starts with a still head (noise-free, a
+    dead zone): its repeats are measurements every two frames, as opentrack's are. They were
+    taken for opentrack's 250 Hz repeats (8 per frame until the values first change), so the
+    still head was measured at 2 Hz, the tracker's adaptive horizon grew, and the motion that
+    followed lagged by about 100 ms."""
+    src = UdpSource("127.0.0.1", 0)
+    src.open()
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    got, stop = [], threading.Event()
+    th = threading.Thread(target=src.run, args=(RealClock(), 0.0, stop, got.append))
+    th.start()
+    try:
+        for k in range(15):  # half a second of the same pose at 30 Hz
+            tx.sendto(PACK.pack(1.0, 0, 60, 0, 0, 0), ("127.0.0.1", src.port))
+            assert _wait(lambda n=k + 1: src.received >= n)
+            time.sleep(1 / 30)
+    finally:
+        stop.set()
+        th.join(5.0)
+        tx.close()
+        src.close()
+    # the first datagram, then one per STILL_FRAMES (2) frames: 1 + 14 // 2 (1 + 14 // 16 = 1
+    # before); the first few intervals decide, so allow one fewer
+    assert 7 <= len(got) <= 8, (len(got), src.stats())
+    assert src.datagrams_per_frame == 1.0
 
 
 def test_virtual_clock_is_refused():
@@ -674,3 +744,30 @@ def test_a_second_sender_is_named_once():
         src.close()
     assert len(lines) == 1 and "poses now from 127.0.0.1:" in lines[0], lines
     assert len(src.senders) == 2
+
+
+def test_a_new_port_per_datagram_is_reported_once_per_interval():
+    """A sender that opens a new socket (a new source port) for each datagram made one line
+    per datagram, forever, and grew the set of senders without bound: now at most one line
+    per report interval, counting the others, and the set is capped."""
+    lines = []
+    src = UdpSource("127.0.0.1", 0, report=lines.append, report_interval=0.5, poll=0.05)
+    src.open()
+    got, stop = [], threading.Event()
+    th = threading.Thread(target=src.run, args=(RealClock(), 0.0, stop, got.append))
+    th.start()
+    t0 = time.monotonic()
+    try:
+        for k in range(150):
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+                tx.sendto(PACK.pack(k, 0, 60, 0, 0, 0), ("127.0.0.1", src.port))
+            assert _wait(lambda n=k + 1: src.received >= n)
+    finally:
+        elapsed = time.monotonic() - t0
+        stop.set()
+        th.join(5.0)
+        src.close()
+    assert 1 <= len(lines) <= 1 + elapsed / 0.5, (len(lines), elapsed)
+    assert len(src.senders) == udp._MAX_SENDERS
+    if len(lines) > 1:
+        assert "other new senders since the last report" in lines[1]
