@@ -52,7 +52,8 @@ def _methods_plot_path(plot: str):
     return p.with_name(f"{p.stem}_methods{p.suffix or '.png'}")
 
 
-def _run_evaluation(times, positions, quaternions, args, title: str) -> int:
+def _run_evaluation(times, positions, quaternions, args, title: str, source=None) -> int:
+    """Evaluate every method on a recording (``source``: its file, named in errors)."""
     import equinox as eqx
 
     from ..evaluation.display import compare_at_display, format_choices, plot_choices
@@ -78,9 +79,13 @@ def _run_evaluation(times, positions, quaternions, args, title: str) -> int:
                 (span * args.camera_rate, BYTES_PER_CAMERA_FRAME)})
     lookaheads = (0.0,) + ((args.lookahead / 1e3,) if args.lookahead > 0 else ())
     t0 = time.perf_counter()
-    result = evaluate_recording(times, positions, quaternions, sensor=_sensor(args),
-                                render_rate=args.rate, seed=args.seed, progress=not args.no_progress,
-                                methods=default_methods(config))
+    try:
+        result = evaluate_recording(times, positions, quaternions, sensor=_sensor(args),
+                                    render_rate=args.rate, seed=args.seed,
+                                    progress=not args.no_progress,
+                                    methods=default_methods(config))
+    except ValueError as e:  # a recording too short to score: name the file
+        raise ValueError(f"{source}: {e}" if source else str(e)) from None
     comparison = compare_at_display(times, positions, quaternions, lookaheads=lookaheads,
                                     tracker_config=config, sensor=_sensor(args),
                                     render_rate=args.rate, seed=args.seed,
@@ -151,7 +156,8 @@ def cmd_demo(args) -> int:
         return _demo_rgbd(args)
     if args.input:
         traj = read_input(args.input, args.format)
-        return _run_evaluation(traj.times, traj.positions, traj.quaternions, args, f"phjax demo on {args.input}")
+        return _run_evaluation(traj.times, traj.positions, traj.quaternions, args,
+                               f"phjax demo on {args.input}", args.input)
     from ..motion.simulate import synthetic_head_motion
 
     t, p, q = synthetic_head_motion(duration=args.duration, seed=args.seed)
@@ -162,7 +168,7 @@ def cmd_evaluate(args) -> int:
     _x64()
     traj = read_input(args.ground_truth, args.format)
     return _run_evaluation(traj.times, traj.positions, traj.quaternions, args,
-                           f"phjax evaluate {args.ground_truth}")
+                           f"phjax evaluate {args.ground_truth}", args.ground_truth)
 
 
 def cmd_smooth(args) -> int:

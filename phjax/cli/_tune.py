@@ -114,7 +114,8 @@ def with_noise_from_args(args, config, times, positions, quaternions):
     config and a one-line description of the noise used.
 
     Raises:
-        ValueError: 'auto' on too few valid samples (the CLI prints it).
+        ValueError: 'auto' on too few valid samples (the CLI prints it; 'floor' keeps the
+            configured noise there).
     """
     from ..tracking.noise import estimate_measurement_noise, with_measurement_noise
     from ..tracking.tracker import TrackerConfig, _stream_filter
@@ -127,12 +128,17 @@ def with_noise_from_args(args, config, times, positions, quaternions):
         try:
             noise = estimate_measurement_noise(times, positions, quaternions)
         except ValueError as e:
+            if value == "floor":  # a floor over nothing: the configured noise, as documented
+                return config, f"measurement noise: the configured (no estimate: {e})"
             raise ValueError(f"--measurement-noise {value}: cannot estimate the noise from this "
                              f"input ({e}); give it as MM,DEG") from None
         pos, rot = float(noise.pos_meas_noise), float(noise.rot_meas_noise)
         pos = pos if np.isfinite(pos) and pos > 0 else None
         rot = rot if np.isfinite(rot) and rot > 0 else None
         if pos is None and rot is None:
+            if value == "floor":
+                return config, ("measurement noise: the configured (too few consecutive valid "
+                                "poses to estimate the input's)")
             raise ValueError(f"--measurement-noise {value}: the input has too few consecutive "
                              "valid poses to estimate the noise")
         how = "estimated from the input"

@@ -538,12 +538,18 @@ class PHQuintic(eqx.Module):
     @_jit_method
     def torsion(self, t: Float[ArrayLike, "*#batch T"]) -> Float[Array, "*batch T"]:
         """Torsion ``tau = (r' x r'') . r''' / |r' x r''|^2`` with ``|r' x r''|^2 = sigma^2 rho``,
-        ``rho = 4 (b_y^2 + b_z^2)`` (0 where the curvature vanishes). Near a cusp (speed below
-        ``eps`` of the curve's scale ``|A0|^2 + |A1|^2 + |A2|^2``) the value is kept and its
-        gradient is zero: the true gradient there overflows."""
+        ``rho = 4 (b_y^2 + b_z^2)``. 0 (gradient 0) where the curve is straight to rounding:
+        ``|(b_y, b_z)|`` at most ``sqrt(eps)`` of the curve's scale ``S = |A0|^2 + |A1|^2 +
+        |A2|^2`` (a curvature times length below about ``2 sqrt(eps)``: 3e-8 in float64, 7e-4
+        in float32), where rounding alone turns the osculating plane (a straight 3 mm segment
+        off the axes had torsions of 1e5-5e6 1/m). Near a cusp (speed below ``eps S``) the
+        value is kept and its gradient is zero: the true gradient there overflows."""
         t, k = self._prep_t(t)
         _, _, sigma, b = self._curv_parts(t, k)
         derivs = self._derivs(t, k)
+        scale = self._ex(sum(dot_last(a, a) for a in (self.A0, self.A1, self.A2))[..., None],
+                         k, 1)[..., 0]
+        curved = b[..., 1] ** 2 + b[..., 2] ** 2 > jnp.finfo(self.dtype).eps * scale ** 2
 
         def tau(sigma, b, derivs):
             # in units of the speed (each factor O(1) at any data scale: the quotient's backward
@@ -556,12 +562,13 @@ class PHQuintic(eqx.Module):
         # Near a cusp the torsion grows like 1/speed^2 and its gradient's intermediates
         # overflow (NaN): there the value is kept and the gradient is zero, the regular formula
         # seeing a well-conditioned stand-in (a unit helix).
-        ok = self._moving(sigma, k)
+        ok = self._moving(sigma, k) & curved
         okv = ok[..., None]
         helix = (jnp.array([1.0, 0.0, 1.0]), jnp.array([0.0, 1.0, 0.0]), jnp.array([-1.0, 0.0, 0.0]))
         regular = tau(jnp.where(ok, sigma, 1), jnp.where(okv, b, jnp.array([0.0, 1.0, 0.0])),
                       [jnp.where(okv, d, h.astype(d.dtype)) for d, h in zip(derivs, helix)])
-        return jnp.where(ok, regular, lax.stop_gradient(tau(sigma, b, derivs)))
+        at_cusp = jnp.where(curved, lax.stop_gradient(tau(sigma, b, derivs)), 0)
+        return jnp.where(ok, regular, at_cusp)
 
     @filter_jit
     def bending_energy(self, num_nodes: int = 64) -> Float[Array, "*batch"]:

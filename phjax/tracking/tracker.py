@@ -863,11 +863,15 @@ def track(
         times: measurement times, s (one recording: sorted and de-duplicated here with a
             warning if needed; internally relative to the first time, so absolute epoch times
             are fine).
-        positions: measured positions, m; NaN rows are missing frames. If every position is
-            NaN (orientation-only data) the orientation is tracked and positions are NaN.
-        quaternions: measured orientations wxyz; NaN rows are missing frames. If no
-            orientation is valid (position-only data) the position is tracked and the
-            quaternions are NaN.
+        positions: measured positions, m; rows with a NaN or an infinity are missing
+            frames. If every position is NaN (orientation-only data) the orientation is
+            tracked and positions are NaN.
+        quaternions: measured orientations wxyz, any sign and norm; rows with a NaN or an
+            infinity, or of zero norm, are missing frames. If no orientation is valid
+            (position-only data) the position is tracked and the quaternions are NaN.
+            Otherwise the filters start at the first row holding both parts: one-part rows
+            before it, or a recording whose rows each hold one part, are named by a
+            :class:`phjax.io.TrajectoryWarning`.
         render_times: times at which to render, s (any order).
         config: tracker configuration (default :class:`TrackerConfig()`), shared by the batch.
         dtype: computation dtype (default: JAX's default float; pass ``jnp.float64`` with x64

@@ -206,6 +206,19 @@ def test_bad_arguments_give_one_line_and_status_2(tmp_path, capsys, argv, messag
     assert not any(tmp_path.glob("result*"))
 
 
+def test_a_noise_floor_over_too_few_poses_keeps_the_configured_noise(tmp_path, capsys):
+    """``--measurement-noise floor`` (documented as safe for a source of unknown noise) failed
+    on a file too short to estimate from; it now keeps the configured noise and says so
+    (``auto``, which has nothing else to use, still fails: BAD_ARGUMENTS)."""
+    good = tmp_path / "good.txt"
+    good.write_text(TUM_ROW + "2.0 0 0 0 0 0 0 1\n")
+    rc, out, err = _run(capsys, ["smooth", str(good), "-o", str(tmp_path / "out.txt"),
+                                 "--measurement-noise", "floor"])
+    assert rc == 0, err
+    assert "measurement noise: the configured (" in out + err
+    assert (tmp_path / "out.txt").exists()
+
+
 def test_an_output_naming_the_input_leaves_it_unchanged(tmp_path, capsys):
     good = tmp_path / "good.txt"
     good.write_text(TUM_ROW + "2.0 0 0 0 0 0 0 1\n")
@@ -347,7 +360,7 @@ def test_a_recording_too_short_to_score_is_one_line(tmp_path, capsys, command):
     src.write_text("".join(f"{0.01 * k:.2f} {0.001 * k} 0 0 0 0 0 1\n" for k in range(5)))
     rc, out, err = _run(capsys, [command, str(src), "--plot", str(tmp_path / "p.png"),
                                  "--no-progress"])
-    _assert_one_line_error(rc, out, err, "the recording is too short to evaluate",
+    _assert_one_line_error(rc, out, err, f"{src}: the recording is too short to evaluate",
                            "jerk and lag need 8")
     assert not (tmp_path / "p.png").exists()
 

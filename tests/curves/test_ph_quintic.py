@@ -832,6 +832,47 @@ def test_collinear_and_nearly_collinear_data_interpolate(dtype, tol):
             assert np.all(err <= tol * scale[:, 0]), (delta, len(angles), err.max())
 
 
+@pytest.mark.parametrize("dtype, bend", [(jnp.float32, 0.1), (jnp.float64, 1e-4)])
+def test_torsion_of_a_straight_segment_is_zero(dtype, bend):
+    """Straight data off the axes (chord and end tangents on one line): its curvature is
+    rounding noise, and the torsion was 1e5-5e6 1/m on a 3 mm segment 1.6 m from the origin
+    (1e10-1e11 in float32; found by probing) where the docs promise 0. Now exactly 0, with a
+    zero gradient. A gently bent segment (end tangents turned by ``bend`` rad, above the
+    sqrt(eps) cutoff) keeps its torsion: the generic formula on its control points (float64)."""
+    if dtype == jnp.float64 and not jax.config.jax_enable_x64:
+        pytest.skip("x64 disabled")
+    rng = np.random.default_rng(7)
+    e = rng.normal(size=(64, 3))
+    e /= np.linalg.norm(e, axis=1, keepdims=True)
+    length = 10 ** rng.uniform(-3, 0, (64, 1))
+    p0 = rng.normal(size=(64, 3))
+    a, b = rng.uniform(0.2, 2, (2, 64, 1))
+    t = jnp.linspace(0, 1, 17, dtype=dtype)
+    args = [jnp.asarray(x, dtype) for x in (p0, p0 + length * e, a * length * e, b * length * e)]
+
+    def total(d0):
+        return jnp.sum(pj.hermite_quintic(args[0], args[1], d0, args[3]).torsion(t))
+
+    assert np.all(np.asarray(pj.hermite_quintic(*args).torsion(t)) == 0)
+    assert np.all(np.asarray(jax.grad(total)(args[2])) == 0)
+    n1 = np.cross(e, rng.normal(size=(64, 3)))
+    n1 /= np.linalg.norm(n1, axis=1, keepdims=True)
+    n2 = np.cross(e, n1)  # an arc (no inflection) that leaves its plane: torsion not 0
+    bent = pj.hermite_quintic(*args[:2], jnp.asarray(a * length * (e + bend * n1), dtype),
+                              jnp.asarray(b * length * (e + bend * (n2 - n1)), dtype))
+    inner = np.linspace(0.1, 0.9, 9)
+    ref = np.stack([generic_kappa_tau(P, inner, with_condition=True)
+                    for P in np.asarray(bent.control_points, np.float64)])
+    tau_ref, cond = ref[:, 1], ref[:, 2]
+    got = np.asarray(bent.torsion(jnp.asarray(inner, dtype)), np.float64)
+    assert np.all(got != 0)
+    if dtype == jnp.float64:  # the generic formula's rounding error scales with cond
+        eps = float(jnp.finfo(dtype).eps)
+        assert np.all(np.abs(got - tau_ref) <= 1e-6 * np.abs(tau_ref) + 1e3 * eps * cond)
+    else:  # float32 control points: measured at most 6.2 % off (a small out-of-plane part)
+        np.testing.assert_allclose(got, tau_ref, rtol=0.1)
+
+
 def test_frenet_frame_is_a_rotation_at_a_resting_end_and_on_a_point_curve():
     """At an end with zero derivative r' is rounding noise: r' x r'' passed the curvature test
     and gave a binormal not perpendicular to the (ERF) tangent, |F^T F - I| up to 1 on 50 of
