@@ -171,6 +171,31 @@ def cmd_evaluate(args) -> int:
                            f"phjax evaluate {args.ground_truth}", args.ground_truth)
 
 
+#: a gap between poses longer than this (s) is named by smooth: it is output as held rows
+LONG_GAP = 10.0
+
+
+def _warn_long_gap(name, traj, rate: float) -> None:
+    """A one-line warning for the longest gap between poses when it exceeds :data:`LONG_GAP`
+    (a paused recording: the stream coasts to rest and then writes the held pose at ``rate``
+    until the next pose; ten hours were 4.3 million identical rows, unannounced)."""
+    import warnings
+
+    from .._np_quat import np_any_part
+    from ..io import TrajectoryWarning
+
+    t = traj.times[np_any_part(traj.positions, traj.quaternions)]
+    if t.size < 2:
+        return
+    gaps = np.diff(t)
+    k = int(np.argmax(gaps))
+    if gaps[k] > LONG_GAP:
+        warnings.warn(f"{name}: no pose for {gaps[k]:.4g} s after t = {t[k]:.6f} s (median "
+                      f"interval {1e3 * np.median(gaps):.3g} ms): the stream comes to rest and "
+                      f"holds the last pose through the gap, about {gaps[k] * rate:.0f} rows",
+                      TrajectoryWarning, stacklevel=2)
+
+
 def cmd_smooth(args) -> int:
     _x64()
     from .._np_quat import np_any_part
@@ -195,6 +220,7 @@ def cmd_smooth(args) -> int:
     span = float(traj.times[-1] - traj.times[0])
     check_fits({f"--rate {args.rate:g} Hz over {span:.3g} s":
                 (span * args.rate, BYTES_PER_RENDER_SAMPLE["smooth"])})
+    _warn_long_gap(args.input, traj, args.rate)
     config, noise = with_noise_from_args(args, config, traj.times, traj.positions,
                                          traj.quaternions)
     if noise:

@@ -6,6 +6,7 @@ traceback, no output file -- for every command that reads a trajectory. Called i
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from phjax.cli import main
@@ -219,6 +220,21 @@ def test_a_noise_floor_over_too_few_poses_keeps_the_configured_noise(tmp_path, c
     assert (tmp_path / "out.txt").exists()
 
 
+def test_a_long_gap_is_named(tmp_path, capsys):
+    """A recording paused for a minute: smooth writes the held pose through the gap (at
+    --rate), now with one warning line naming the gap."""
+    f = tmp_path / "paused.txt"
+    t = np.r_[np.arange(30) / 30, 61 + np.arange(30) / 30]
+    f.write_text("".join(f"{x:.6f} {0.01 * k} 0 0 0 0 0 1\n" for k, x in enumerate(t)))
+    rc, out, err = _run(capsys, ["smooth", str(f), "-o", str(tmp_path / "out.txt"),
+                                 "--rate", "60"])
+    assert rc == 0, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("phjax: warning:")]
+    assert lines == [f"phjax: warning: {f}: no pose for 60.03 s after t = 0.966667 s (median "
+                     "interval 33.3 ms): the stream comes to rest and holds the last pose "
+                     "through the gap, about 3602 rows"], err
+
+
 def test_an_output_naming_the_input_leaves_it_unchanged(tmp_path, capsys):
     good = tmp_path / "good.txt"
     good.write_text(TUM_ROW + "2.0 0 0 0 0 0 0 1\n")
@@ -234,8 +250,6 @@ def _one_part_rows(n=120, leading=None):
     """A 30 Hz TUM recording whose rows alternate a position only and an orientation only (a
     log merged from two sensors), or, with ``leading``, whose first ``leading`` rows hold only a
     position and the rest whole poses."""
-    import numpy as np
-
     t = 1.0 + np.arange(n) / 30
     rows = []
     for i, ti in enumerate(t):
