@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from collections import Counter
 from pathlib import Path
@@ -11,6 +12,7 @@ import numpy as np
 
 from ._common import (
     add_output_argument,
+    BYTES_PER_CAMERA_FRAME,
     BYTES_PER_RENDER_SAMPLE,
     add_rate_argument,
     check_fits,
@@ -63,13 +65,34 @@ def _reader_options(args) -> dict:
 LAYOUT_NAMES = {"biwi": "a Biwi folder", "synthetic": "the synthetic head"}
 
 
+#: the lists, poses and calibrations that the RGB-D readers read in a source folder (Biwi,
+#: TUM RGB-D, color/ + depth/ with pose.txt), and its image subfolders
+_RECORDING_NAMES = ("rgb.txt", "depth.txt", "groundtruth.txt", "accelerometer.txt",
+                    "pose.txt", "rgb.cal", "depth.cal")
+_RECORDING_FOLDERS = ("rgb", "depth", "color")
+
+
+def _recording_files(source) -> set[Path]:
+    """The files of an RGB-D source folder that an output must not replace (resolved paths;
+    empty for a synthetic source). Other files in the folder, such as an earlier run's
+    output, may be written again."""
+    folder = Path(source)
+    if not folder.is_dir():
+        return set()
+    files = {folder / name for name in _RECORDING_NAMES}
+    files.update(folder.glob("frame_*_pose.txt"))
+    for sub in _RECORDING_FOLDERS:
+        files.update((folder / sub).rglob("*"))
+    return {f.resolve() for f in files}
+
+
 def cmd_track_rgbd(args) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
     from ..vision.head_pose import HeadPoseConfig, HeadPoseEstimator, HeadPoseStatus
     from ..io import Trajectory, write_trajectory
-    from ..vision.rgbd_io import open_rgbd
+    from ..vision.rgbd_io import RGBDFormatError, open_rgbd
     from ..tracking.tracker import track
 
     check_trajectory_output(args.output)
@@ -77,11 +100,21 @@ def cmd_track_rgbd(args) -> int:
         check_trajectory_output(args.raw)
         if Path(args.raw).resolve() == Path(args.output).resolve():
             raise ValueError(f"--raw {args.raw}: the same file as -o; name another file")
-    if str(args.source) == "synthetic" or str(args.source).startswith("synthetic:"):
+    for option, out in (("-o", args.output), ("--raw", args.raw)):
+        if out and Path(out).resolve() in _recording_files(args.source):
+            raise ValueError(f"{option} {out}: a file of the recording {args.source}; "
+                             "writing it would destroy it: name another file")
+    source = args.source
+    if str(source) == "synthetic" or str(source).startswith("synthetic:"):
         from ..live._sources import synthetic_spec
 
-        synthetic_spec(args.source)  # N >= 1, 0 <= SEED < 2**32: the same check as phjax live
-    seq = open_rgbd(args.source, **_reader_options(args))
+        frames, seed = synthetic_spec(source)  # N >= 1, 0 <= SEED < 2**32: as phjax live's
+        if args.max_frames is not None:  # only those are simulated
+            frames = min(frames, args.max_frames)
+            source = f"synthetic:{frames}:{seed}"
+        check_fits({f"{source} ({frames} frames)": (frames, BYTES_PER_CAMERA_FRAME)},
+                   "give fewer frames (N, or --max-frames)")
+    seq = open_rgbd(source, **_reader_options(args))
     n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
     if n == 0:
         raise ValueError(f"{args.source}: no frames")
@@ -96,6 +129,9 @@ def cmd_track_rgbd(args) -> int:
         if gt is None or seq.ground_truth_kind != "head":
             raise ValueError("--gt-reference needs a source with head-pose ground truth "
                              "(Biwi, synthetic)")
+        if not (np.isfinite(gt.quaternions[0]).all() and np.isfinite(gt.positions[0]).all()):
+            raise ValueError(f"--gt-reference: the first frame of {args.source} has no "
+                             "ground-truth pose")
         reference = (gt.quaternions[0], gt.positions[0])
     from ..vision.face_detection import FaceDetector, ModelNotFoundError
 
@@ -107,26 +143,34 @@ def cmd_track_rgbd(args) -> int:
         raise model_not_found(e, "../shared/data/yunet_face_detection") from None
     est = HeadPoseEstimator(seq.intrinsics, cfg, detector=detector, model_dir=args.model_dir,
                             reference_pose=reference)
-    frames = (seq[i] for i in range(n))
+    indices = range(n)
     if not args.no_progress:
         try:
             from tqdm.auto import tqdm
 
-            frames = tqdm(frames, total=n, unit="frame", desc="head pose")
+            indices = tqdm(indices, total=n, unit="frame", desc="head pose")
         except ImportError:
             pass
-    times = np.empty(n)
+    times = np.asarray(seq.timestamps[:n], np.float64).copy()
     pos = np.full((n, 3), np.nan)
     quat = np.full((n, 4), np.nan)
     status = []
+    detected = 0  # frames whose face the detector found (not the depth fallback or tracking)
     per_frame = np.full(n, np.nan)
     t_all = time.perf_counter()
-    for i, frame in enumerate(frames):
+    for i in indices:
         t0 = time.perf_counter()
+        try:
+            frame = seq[i]
+        except (OSError, RGBDFormatError) as e:  # a missing or damaged file: that frame lost
+            print(f"phjax: warning: frame {i}: {e}", file=sys.stderr)
+            status.append(HeadPoseStatus.INVALID_INPUT.name)
+            continue
         r = est.process_frame(frame)
         per_frame[i] = time.perf_counter() - t0
         times[i] = r.timestamp
         status.append(HeadPoseStatus(r.status).name)
+        detected += r.face_source == "detector"
         if r.ok:
             pos[i], quat[i] = r.position, r.quaternion
     wall = time.perf_counter() - t_all
@@ -135,9 +179,11 @@ def cmd_track_rgbd(args) -> int:
     print(f"source: {seq.name}: {n} frames, backend {args.backend}")
     print("status: " + ", ".join(f"{k} {v}" for k, v in counts.most_common()))
     steady = per_frame[min(2, n - 1):]
-    print(f"front-end: median {1e3 * np.median(steady):.1f} ms/frame "
-          f"({1 / np.median(steady):.1f} frames/s) after the first frames (those include the "
-          f"compilation: {per_frame[:2].sum():.1f} s); {wall:.1f} s in all with frame loading")
+    if np.isfinite(steady).any():
+        print(f"front-end: median {1e3 * np.nanmedian(steady):.1f} ms/frame "
+              f"({1 / np.nanmedian(steady):.1f} frames/s) after the first frames (those include "
+              f"the compilation: {np.nansum(per_frame[:2]):.1f} s); {wall:.1f} s in all with "
+              "frame loading")
     if not ok.any():
         hint = ""
         if counts.most_common(1)[0][0] == "NO_DEPTH":
@@ -145,6 +191,10 @@ def cmd_track_rgbd(args) -> int:
                     f"{cfg.max_depth:g} m: check the depth's units; --depth-scale sets them "
                     "for TUM RGB-D and color/ + depth/ folders)")
         raise ValueError(f"no frame produced a head pose; nothing to track{hint}")
+    if not detected:  # a reference the detector never confirmed: possibly furniture
+        raise ValueError(f"the face detector found no face in any of the {n} frames; the poses "
+                         "of the depth fallback alone are not trusted (is a face in the colour "
+                         "images?)")
     if args.raw:
         note = replaced_note(args.raw)
         write_trajectory(args.raw, Trajectory(times[ok], pos[ok], quat[ok]))
@@ -158,7 +208,7 @@ def cmd_track_rgbd(args) -> int:
             print(f"rotation relative to the first good frame vs ground truth: median "
                   f"{np.median(err):.2f} deg, max {err.max():.2f} deg over {sel.sum()} frames")
     # render-rate stream from the measured poses
-    render = np.arange(times[ok][0], times[-1] + 1e-9, 1.0 / args.rate)
+    render = np.arange(times[ok].min(), times.max() + 1e-9, 1.0 / args.rate)
     config, noise = with_noise_from_args(args, None, times, pos, quat)
     if noise:
         print(noise)

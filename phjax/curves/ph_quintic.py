@@ -93,6 +93,9 @@ def _bern_to_power(n: int) -> np.ndarray:
 
 
 _M5 = _bern_to_power(5)
+#: torsion is 0 where the curve bends less than this many eps of its size and distance from
+#: the origin (PHQuintic.torsion)
+_STRAIGHT_NOISE = 8.0
 _M4 = _bern_to_power(4)
 _GL_NODES = {}
 _CC_REGULARISATION = 0.1  # see _cc_angles
@@ -422,13 +425,19 @@ class PHQuintic(eqx.Module):
         return 2 * ((a1 - a0) * (1 - tt) + (a2 - a1) * tt)
 
     def _derivs(self, t, k: int):
-        """r', r'', r''' from the power basis."""
-        c = self._power(k)
-        tt = t[..., None]
-        c1, c2, c3, c4, c5 = (c[..., j, :] for j in range(1, 6))
-        d1 = c1 + tt * (2 * c2 + tt * (3 * c3 + tt * (4 * c4 + tt * 5 * c5)))
-        d2 = 2 * c2 + tt * (6 * c3 + tt * (12 * c4 + tt * 20 * c5))
-        d3 = 6 * c3 + tt * (24 * c4 + tt * 60 * c5)
+        """r', r'', r''' from the preimage: ``r' = A i A*``, ``r'' = 2 vect(A i A'*)``,
+        ``r''' = 2 vect(A' i A'* + A i A''*)`` (``A''`` constant). No position enters: from
+        the control points the derivatives were differences of absolute points and lost digits
+        with the curve's distance from the origin (13 % of the hodograph at 100 m in float32,
+        and the torsion with it)."""
+        a, da = self._A(t, k), self._dA(t, k)
+        a0, a1, a2 = (self._ex(x, k, 1) for x in (self.A0, self.A1, self.A2))
+        dda = jnp.broadcast_to(2 * (a0 - 2 * a1 + a2), da.shape)
+        unit_i = jnp.array([0.0, 1.0, 0.0, 0.0], a.dtype)
+        ai, dai = quat_mul(a, unit_i), quat_mul(da, unit_i)
+        d1 = quat_mul(ai, quat_conj(a))[..., 1:]
+        d2 = 2 * quat_mul(ai, quat_conj(da))[..., 1:]
+        d3 = 2 * (quat_mul(dai, quat_conj(da)) + quat_mul(ai, quat_conj(dda)))[..., 1:]
         return d1, d2, d3
 
     # --------------------------------------------------------------------- evaluation
@@ -539,17 +548,24 @@ class PHQuintic(eqx.Module):
     def torsion(self, t: Float[ArrayLike, "*#batch T"]) -> Float[Array, "*batch T"]:
         """Torsion ``tau = (r' x r'') . r''' / |r' x r''|^2`` with ``|r' x r''|^2 = sigma^2 rho``,
         ``rho = 4 (b_y^2 + b_z^2)``. 0 (gradient 0) where the curve is straight to rounding:
-        ``|(b_y, b_z)|`` at most ``sqrt(eps)`` of the curve's scale ``S = |A0|^2 + |A1|^2 +
-        |A2|^2`` (a curvature times length below about ``2 sqrt(eps)``: 3e-8 in float64, 7e-4
-        in float32), where rounding alone turns the osculating plane (a straight 3 mm segment
-        off the axes had torsions of 1e5-5e6 1/m). Near a cusp (speed below ``eps S``) the
-        value is kept and its gradient is zero: the true gradient there overflows."""
+        ``max(|b_y|, |b_z|)`` at most ``8 eps (S + P)``, with ``S = |A0|^2 + |A1|^2 + |A2|^2``
+        the curve's scale and ``P`` the largest control-point coordinate (the bending that
+        rounding the data gives a straight segment far from the origin; there the osculating
+        plane, and so the torsion, is noise: a straight 3 mm segment 1.6 m from the origin had
+        torsions of 1e5-5e6 1/m). Near a cusp (speed below ``eps S``) the value is kept and
+        its gradient is zero: the true gradient there overflows. NaN data gives NaN."""
         t, k = self._prep_t(t)
         _, _, sigma, b = self._curv_parts(t, k)
         derivs = self._derivs(t, k)
-        scale = self._ex(sum(dot_last(a, a) for a in (self.A0, self.A1, self.A2))[..., None],
-                         k, 1)[..., 0]
-        curved = b[..., 1] ** 2 + b[..., 2] ** 2 > jnp.finfo(self.dtype).eps * scale ** 2
+        # the bending that rounding the data alone gives a straight segment: eps relative to
+        # its size and to its distance from the origin (the chord p1 - p0 is a difference of
+        # absolute points)
+        size = sum(dot_last(a, a) for a in (self.A0, self.A1, self.A2))
+        far = jnp.max(jnp.abs(self.control_points), axis=(-2, -1))
+        noise = _STRAIGHT_NOISE * jnp.finfo(self.dtype).eps * (size + far)
+        noise = self._ex(noise[..., None], k, 1)[..., 0]
+        curved = jnp.maximum(jnp.abs(b[..., 1]), jnp.abs(b[..., 2])) > noise
+        curved = curved | jnp.isnan(b[..., 1] + b[..., 2])  # NaN data: NaN, not 0
 
         def tau(sigma, b, derivs):
             # in units of the speed (each factor O(1) at any data scale: the quotient's backward

@@ -574,6 +574,22 @@ def _estimate(kf: _Keyframe, fr: _Frame, pred_q, pred_t, has_pred, index, cfg, m
 
 
 # ---------------------------------------------------------------------------------- estimator
+def _checked_reference(reference_pose) -> tuple[np.ndarray, np.ndarray]:
+    """``(quaternion, position)`` as float64 arrays, or a ``ValueError`` naming the problem."""
+    try:
+        q, p = (np.asarray(x, np.float64) for x in reference_pose)
+    except (TypeError, ValueError):
+        raise ValueError("reference_pose must be (quaternion wxyz (4,), position m (3,)), got "
+                         f"{reference_pose!r}") from None
+    if q.shape != (4,) or p.shape != (3,):
+        raise ValueError(f"reference_pose must be (quaternion (4,), position (3,)), got shapes "
+                         f"{q.shape} and {p.shape}")
+    if not (np.isfinite(q).all() and np.isfinite(p).all() and np.any(q != 0)):
+        raise ValueError(f"reference_pose must be finite with a non-zero quaternion, got "
+                         f"quaternion {q} and position {p}")
+    return q, p
+
+
 class HeadPoseEstimator:
     """Stateful RGB-D head pose front-end (see the module docstring for the pipeline).
 
@@ -606,14 +622,19 @@ class HeadPoseEstimator:
                                     detect_width=self.config.detect_width,
                                     score_threshold=self.config.min_face_score)
         self.detector = detector or None
-        self._reference_pose = reference_pose
+        self._reference_pose = None
         self.reset(reference_pose)
 
     # ------------------------------------------------------------------ state
     def reset(self, reference_pose: tuple[Any, Any] | None = None) -> None:
-        """Forget all keyframes and the last pose (``reference_pose`` as in the constructor)."""
+        """Forget all keyframes and the last pose (``reference_pose`` as in the constructor).
+
+        Raises:
+            ValueError: a ``reference_pose`` that is not a finite quaternion (4,) of non-zero
+                norm and a finite position (3,): it made every pose NaN, reported as OK.
+        """
         if reference_pose is not None:
-            self._reference_pose = reference_pose
+            self._reference_pose = _checked_reference(reference_pose)
         self._forget_keyframes()
         self._last: tuple[np.ndarray, np.ndarray] | None = None
         self._frame_index = 0

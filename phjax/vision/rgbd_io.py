@@ -790,7 +790,8 @@ def read_tum_rgbd(folder: PathLike, *,
         depth_scale: depth units per metre (5000 for TUM).
 
     Returns:
-        The associated frames, timestamped with the colour image time. ``groundtruth.txt``
+        The associated frames in time order (``rgb.txt`` may list them in any order),
+        timestamped with the colour image time. ``groundtruth.txt``
         (camera poses ``T_wc``), if present, becomes the ground truth, taken at the nearest
         time within ``max_difference`` of each frame (NaN rows otherwise).
     """
@@ -800,6 +801,8 @@ def read_tum_rgbd(folder: PathLike, *,
     ia, ib = associate(t_rgb, t_dep, max_difference)
     if ia.size == 0:
         raise RGBDFormatError(folder, f"no colour/depth pair within {max_difference} s")
+    order = np.argsort(t_rgb[ia], kind="stable")  # in time order, however rgb.txt lists them
+    ia, ib = ia[order], ib[order]
     first = _color(folder / rgb_names[ia[0]])
     if intrinsics is None:
         intrinsics = _guess_tum_intrinsics(folder, first.shape[:2])

@@ -138,6 +138,8 @@ BAD_ARGUMENTS = [
      "of range; use synthetic[:N[:SEED]] (N >= 1 frames, 0 <= SEED < 2**32)"),
     (["track-rgbd", "synthetic:3:-1", "-o", "OUT.tum"], "SEED -1 out of range"),
     (["track-rgbd", "synthetic:0", "-o", "OUT.tum"], "bad synthetic source 'synthetic:0': N 0"),
+    # a billion frames ran out of memory simulating the motion (or ran on for minutes)
+    (["track-rgbd", "synthetic:1000000000", "-o", "OUT.tum"], "give fewer frames (N, or"),
     (["track-rgbd", "synthetic:2", "-o", "OUT.tum", "--model-dir", "NOFOLDER"],
      "not found in NOFOLDER: pass --model-dir FOLDER (a folder holding the model files"),
     (["smooth", "FILE"], "the following arguments are required: -o/--output"),

@@ -3,6 +3,7 @@ frames, the free-angle family, covariance, degenerate input, gradients, real dat
 
 from math import comb
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -838,7 +839,7 @@ def test_torsion_of_a_straight_segment_is_zero(dtype, bend):
     rounding noise, and the torsion was 1e5-5e6 1/m on a 3 mm segment 1.6 m from the origin
     (1e10-1e11 in float32; found by probing) where the docs promise 0. Now exactly 0, with a
     zero gradient. A gently bent segment (end tangents turned by ``bend`` rad, above the
-    sqrt(eps) cutoff) keeps its torsion: the generic formula on its control points (float64)."""
+    rounding cutoff) keeps its torsion: the generic formula on its control points (float64)."""
     if dtype == jnp.float64 and not jax.config.jax_enable_x64:
         pytest.skip("x64 disabled")
     rng = np.random.default_rng(7)
@@ -871,6 +872,50 @@ def test_torsion_of_a_straight_segment_is_zero(dtype, bend):
         assert np.all(np.abs(got - tau_ref) <= 1e-6 * np.abs(tau_ref) + 1e3 * eps * cond)
     else:  # float32 control points: measured at most 6.2 % off (a small out-of-plane part)
         np.testing.assert_allclose(got, tau_ref, rtol=0.1)
+
+
+@pytest.mark.parametrize("dtype, offsets", [(jnp.float32, [1e2, 1e4]),
+                                            (jnp.float64, [1e4, 1e8])])
+def test_derivatives_do_not_depend_on_the_distance_from_the_origin(dtype, offsets):
+    """The same curve (same preimage A) moved away from the origin has the same hodograph,
+    curvature, torsion and Frenet frame. They were differences of absolute control points:
+    a 3 mm segment at 100 m had 6 % of its length wrong in its float32 hodograph (16 times
+    its length at 1e4 m), and its torsion with it (found by review). Bit for bit now: they
+    are computed from A alone."""
+    if dtype == jnp.float64 and not jax.config.jax_enable_x64:
+        pytest.skip("x64 disabled")
+    length = 3e-3
+    u = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
+    n1 = np.cross(u, [0.0, 0.0, 1.0])
+    n1 /= np.linalg.norm(n1)
+    n2 = np.cross(u, n1)
+    p0 = np.array([0.1, 0.2, 0.3])
+    data = (p0, p0 + length * (u + 0.1 * n1), length * (u + 0.1 * n2), length * (u - 0.1 * n2))
+    c0 = pj.hermite_quintic(*(jnp.asarray(x, dtype) for x in data))
+    t = jnp.linspace(0, 1, 9, dtype=dtype)
+    ref = [np.asarray(f(t)) for f in (c0.hodograph, c0.curvature, c0.torsion,
+                                       lambda t: c0.frame(t, "frenet"))]
+    np.testing.assert_allclose(np.linalg.norm(ref[0], axis=-1), c0.speed(t), rtol=1e-5)
+    for off in offsets:
+        moved = eqx.tree_at(lambda c: c.control_points, c0, c0.control_points + dtype(off))
+        got = [np.asarray(f(t)) for f in (moved.hodograph, moved.curvature, moved.torsion,
+                                           lambda t, m=moved: m.frame(t, "frenet"))]
+        for g, r in zip(got[:2] + got[3:], ref[:2] + ref[3:]):
+            np.testing.assert_array_equal(g, r)
+        # the torsion too, or 0 where rounding data that far out could bend a straight
+        # segment as much as this one bends (float32 at 1e4 m: 1e-3 m steps for a 3 mm curve)
+        assert np.all((got[2] == ref[2]) | (got[2] == 0)), (off, got[2])
+        if dtype == jnp.float64:
+            np.testing.assert_array_equal(got[2], ref[2])
+
+
+def test_nan_data_give_nan_torsion():
+    """NaN data (or a NaN parameter) must not pass for a straight curve (torsion 0)."""
+    x, y = np.array([1.0, 0, 0]), np.array([0, 1.0, 0.3])
+    bad = pj.hermite_quintic(np.array([0, np.nan, 0]), x + y, x, y)
+    good = pj.hermite_quintic(np.zeros(3), x + y, x, y)
+    assert np.isnan(np.asarray(bad.torsion(jnp.array([0.5])))).all()
+    assert np.isnan(np.asarray(good.torsion(jnp.array([np.nan])))).all()
 
 
 def test_frenet_frame_is_a_rotation_at_a_resting_end_and_on_a_point_curve():

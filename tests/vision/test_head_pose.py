@@ -619,6 +619,83 @@ def test_slambook_reprojection_refinement_depth_window():
 
 
 # ----------------------------------------------------------------------------------- CLI
+def test_reference_pose_must_be_a_finite_pose():
+    """A NaN, zero or wrongly shaped reference made every pose NaN, reported as OK (found by
+    review); now a one-line ValueError when the estimator is made or reset."""
+    for ref, match in [((np.full(4, np.nan), np.zeros(3)), "finite with a non-zero"),
+                       ((np.zeros(4), np.zeros(3)), "finite with a non-zero"),
+                       ((np.array([1.0, 0, 0, 0]), np.full(3, np.inf)), "finite"),
+                       ((np.zeros(3), np.zeros(3)), r"shapes \(3,\) and \(3,\)"),
+                       (np.zeros(7), "must be")]:
+        with pytest.raises(ValueError, match=match):
+            H.HeadPoseEstimator(detector=False, reference_pose=ref)
+    est = H.HeadPoseEstimator(detector=False, reference_pose=([2.0, 0, 0, 0], [0, 0, 0.5]))
+    with pytest.raises(ValueError, match="finite"):
+        est.reset((np.full(4, np.nan), np.zeros(3)))
+
+
+def test_cli_track_rgbd_keeps_going_past_bad_frames_and_guards_the_recording(tmp_path,
+                                                                            capsys):
+    """Found by review of ``phjax track-rgbd``:
+
+    * ``-o`` / ``--raw`` naming a file of the source folder replaced the recording's own files
+      (a Biwi pose file, a TUM ``rgb.txt``): refused before any work;
+    * a TUM ``rgb.txt`` listing frames out of time order gave an empty stream (exit 0): the
+      reader now orders the frames by time;
+    * one missing image ended the run and discarded every pose: now that frame is lost, with
+      one warning line;
+    * colour images without a face still gave "OK" poses from the depth fallback (23-87 deg
+      off): an error when the detector never found a face.
+    """
+    import argparse
+    import shutil
+    from pathlib import Path
+
+    from phjax.cli import _rgbd
+    from phjax.io import read_trajectory
+
+    cache = tmp_path / "models"
+    F.seed_model_cache(yunet_models(), cache)
+    parser = argparse.ArgumentParser(prog="phjax")
+    _rgbd.add_commands(parser.add_subparsers(dest="command", required=True))
+    biwi = tmp_path / "biwi"
+    shutil.copytree(shared_path(*BIWI), biwi)
+    pose_file = biwi / "frame_00054_pose.txt"
+    before = pose_file.read_bytes()
+    for argv in (["-o", str(pose_file)], ["-o", str(tmp_path / "o.tum"), "--raw", str(pose_file)]):
+        args = parser.parse_args(["track-rgbd", str(biwi), *argv, "--no-progress"])
+        with pytest.raises(ValueError, match="a file of the recording"):
+            args.func(args)
+    assert pose_file.read_bytes() == before
+    # the Biwi frames as a TUM folder, rgb.txt rotated (out of order), one image missing
+    seq = R.read_biwi(biwi)
+    tum = tmp_path / "tum"
+    R.write_tum_rgbd(tum, list(seq))
+    body = [ln for ln in (tum / "rgb.txt").read_text().splitlines() if not ln.startswith("#")]
+    (tum / "rgb.txt").write_text("\n".join(body[1:] + body[:1]) + "\n")  # out of order
+    (tum / body[1].split()[1]).unlink()  # the second frame in time
+    assert R.open_rgbd(tum)[0].name == Path(body[0].split()[1]).stem  # the earliest first
+    i = seq.intrinsics
+    out, raw = tmp_path / "head.tum", tmp_path / "raw.tum"
+    args = parser.parse_args(["track-rgbd", str(tum), "-o", str(out), "--raw", str(raw),
+                              "--intrinsics", f"{i.fx},{i.fy},{i.cx},{i.cy}", "--model-dir",
+                              str(cache), "--no-progress", "--rate", "60"])
+    assert args.func(args) == 0
+    printed = capsys.readouterr()
+    assert "status:" in printed.out and "INVALID_INPUT 1" in printed.out, printed.out
+    assert [ln for ln in printed.err.splitlines() if "warning: frame 1:" in ln], printed.err
+    per_frame = read_trajectory(raw)
+    assert np.all(np.diff(per_frame.times) > 0) and per_frame.num_samples == 2
+    assert read_trajectory(out).num_samples > 5
+    # no face in any colour image: the depth fallback's "head" is not reported
+    for png in biwi.glob("*_rgb.png"):
+        R._write_png(png, np.full((480, 640, 3), 128, np.uint8))
+    args = parser.parse_args(["track-rgbd", str(biwi), "-o", str(out), "--model-dir",
+                              str(cache), "--no-progress"])
+    with pytest.raises(ValueError, match="found no face in any of the 3 frames"):
+        args.func(args)
+
+
 def test_cli_track_rgbd(tmp_path, monkeypatch, capsys):
     import argparse
 
