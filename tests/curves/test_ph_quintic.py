@@ -855,7 +855,8 @@ def test_torsion_of_a_straight_segment_is_zero(dtype, bend):
         return jnp.sum(pj.hermite_quintic(args[0], args[1], d0, args[3]).torsion(t))
 
     assert np.all(np.asarray(pj.hermite_quintic(*args).torsion(t)) == 0)
-    assert np.all(np.asarray(jax.grad(total)(args[2])) == 0)
+    if dtype == jnp.float64:  # (one dtype: the gradient's compilation is most of the time)
+        assert np.all(np.asarray(jax.grad(total)(args[2])) == 0)
     n1 = np.cross(e, rng.normal(size=(64, 3)))
     n1 /= np.linalg.norm(n1, axis=1, keepdims=True)
     n2 = np.cross(e, n1)  # an arc (no inflection) that leaves its plane: torsion not 0
