@@ -613,8 +613,13 @@ class PHQuintic(eqx.Module):
         x, w = (jnp.asarray(a, self.dtype) for a in _gauss_legendre(num_nodes))
 
         def integrand(tn, axes):
-            _, _, sigma, b = self._curv_parts(tn, axes)
-            return safe_div(b[..., 0], sigma)
+            # b_x / sigma = vect(Ahat* A')_x / |A| with Ahat = A / |A|: one division by |A| at a
+            # time. The quotient b_x / |A|^2 near a zero end derivative (|A|^2 ~ 1e-20 on the
+            # panels graded towards it) had a backward pass through 1 / |A|^4, inf in float32
+            a, da = self._A(tn, axes), self._dA(tn, axes)
+            norm = safe_norm(a, keepdims=True)
+            bx = quat_mul(quat_conj(safe_div(a, norm)), da)[..., 1]
+            return safe_div(bx, norm[..., 0])
 
         edges = lax.stop_gradient(self._rmf_panels())  # (*B, P + 1)
         lo, hi = edges[..., :-1], edges[..., 1:]

@@ -674,6 +674,24 @@ def test_singular_inputs_finite_gradients(name, angles):
         assert np.all(np.isfinite(np.asarray(gphi)))
 
 
+def test_rmf_gradients_at_a_zero_end_derivative_in_float32():
+    """The RMF's angle integrates b_x / sigma on panels graded towards a zero end derivative,
+    where sigma ~ 1e-20: its backward pass went through 1 / sigma^2 and was NaN / inf in
+    float32 at every t (found by review; float64 was fine). Now finite, for one or both ends
+    at rest."""
+    f = jnp.float32
+    p0, p1, d = jnp.zeros(3, f), jnp.array([1.0, 0.2, 0.3], f), jnp.array([0.0, 1.0, 1.0], f)
+    t = jnp.array([0.0, 0.5, 1.0], f)
+
+    def loss(p1, d0, d1):
+        c = pj.hermite_quintic(p0, p1, d0, d1)
+        return jnp.sum(c.rmf_angle(t))  # (the RMF frame turns the ERF by this angle)
+
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2)))
+    for d0, d1 in ((jnp.zeros(3, f), d), (d, jnp.zeros(3, f)), (jnp.zeros(3, f),) * 2):
+        assert all(np.all(np.isfinite(np.asarray(g))) for g in grad(p1, d0, d1))
+
+
 def _near_degenerate_data(rng, n):
     """``n`` Hermite problems whose vectors are zero, tiny (down to 1e-120), have components
     of very different magnitudes, or are antiparallel (a fifth of them: ``d1 = -c d0``)."""
