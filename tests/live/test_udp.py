@@ -213,10 +213,11 @@ def _wait(cond, timeout=10.0):
     return cond()
 
 
-def _running_source(lines):
-    """A UdpSource on a free loopback port reporting into ``lines`` (no rate limit), its loop
-    running in a thread: ``(source, measurements received, stop event, thread)``."""
-    src = UdpSource("127.0.0.1", 0, report=lines.append, report_interval=0.0, poll=0.05)
+def _running_source(lines, report_interval=0.0):
+    """A UdpSource on a free loopback port reporting into ``lines`` (by default no rate limit),
+    its loop running in a thread: ``(source, measurements received, stop event, thread)``."""
+    src = UdpSource("127.0.0.1", 0, report=lines.append, report_interval=report_interval,
+                    poll=0.05)
     src.open()
     got, stop = [], threading.Event()
     th = threading.Thread(target=src.run, args=(RealClock(), 0.0, stop, got.append))
@@ -434,12 +435,8 @@ def test_a_sender_of_one_datagram_per_frame_still_at_the_start():
     taken for opentrack's 250 Hz repeats (8 per frame until the values first change), so the
     still head was measured at 2 Hz, the tracker's adaptive horizon grew, and the motion that
     followed lagged by about 100 ms."""
-    src = UdpSource("127.0.0.1", 0)
-    src.open()
+    src, got, stop, th = _running_source([])
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    got, stop = [], threading.Event()
-    th = threading.Thread(target=src.run, args=(RealClock(), 0.0, stop, got.append))
-    th.start()
     try:
         for k in range(15):  # half a second of the same pose at 30 Hz
             tx.sendto(PACK.pack(1.0, 0, 60, 0, 0, 0), ("127.0.0.1", src.port))
@@ -751,11 +748,7 @@ def test_a_new_port_per_datagram_is_reported_once_per_interval():
     per datagram, forever, and grew the set of senders without bound: now at most one line
     per report interval, counting the others, and the set is capped."""
     lines = []
-    src = UdpSource("127.0.0.1", 0, report=lines.append, report_interval=0.5, poll=0.05)
-    src.open()
-    got, stop = [], threading.Event()
-    th = threading.Thread(target=src.run, args=(RealClock(), 0.0, stop, got.append))
-    th.start()
+    src, got, stop, th = _running_source(lines, report_interval=0.5)
     t0 = time.monotonic()
     try:
         for k in range(150):

@@ -717,14 +717,12 @@ def test_measurements_the_filters_cannot_use_are_named():
             pj.track(t, pp, qq, r)
 
 
-def test_quaternions_of_any_norm_in_float32():
+def test_quaternions_of_any_norm_in_float32(head):
     """Quaternions scaled by 1e-30 ... 1e30 give the unit quaternions' stream in float32 (a norm
-    of 1e-19 made every output NaN, positions included: its square underflows)."""
-    rng = np.random.default_rng(4)
-    t = np.arange(40) / 30
-    p = np.cumsum(rng.normal(size=(40, 3)) * 1e-3, 0)
-    q = np.asarray(pj.quat_from_rotvec(np.cumsum(rng.normal(size=(40, 3)) * 0.02, 0)))
-    r = np.linspace(0, t[-1], 60)
+    of 1e-19 made every output NaN, positions included: its square underflows). (The program
+    of test_float32_stream_close_to_float64: same data shapes.)"""
+    _, _, _, t, p, q = head
+    r = np.linspace(t[0], t[-1], 300)
     P0, Q0 = (np.asarray(x) for x in pj.track(t, p, q, r, dtype=jnp.float32))
     for scale in (1e-30, 1e-19, 1e19, 1e30):
         P, Q = (np.asarray(x) for x in pj.track(t, p, q * scale, r, dtype=jnp.float32))
