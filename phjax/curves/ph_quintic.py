@@ -506,7 +506,13 @@ class PHQuintic(eqx.Module):
         A 33-point inverse-interpolation table gives the start; then ``num_iterations``
         bracketed Newton steps (bisection when Newton leaves the bracket) converge to machine
         precision (1e-12 relative in float64). Fixed iteration count: jit-friendly.
+
+        Raises:
+            ValueError: ``num_iterations`` not an integer >= 0 (0: the table's start).
         """
+        if isinstance(num_iterations, bool) or not isinstance(num_iterations, (int, np.integer)) \
+                or num_iterations < 0:
+            raise ValueError(f"num_iterations must be an integer >= 0, got {num_iterations!r}")
         s, k = self._prep_t(s, "s")
         c = self._arc_power(k)
         length = self.length.reshape(self.batch_shape + (1,) * k)

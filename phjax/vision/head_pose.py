@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import enum
 import functools
+import math
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -107,7 +108,8 @@ class HeadPoseStatus(enum.IntEnum):
     #: no pose: correspondences gave a candidate, but no refined candidate passed the overlap /
     #: residual / landmark checks
     ALIGNMENT_FAILED = 4
-    INVALID_INPUT = 5  #: colour / depth arrays of the wrong shape or type, or bad intrinsics
+    #: colour / depth arrays of the wrong shape or type, bad intrinsics, or a non-finite time
+    INVALID_INPUT = 5
 
 
 @dataclass(frozen=True)
@@ -717,7 +719,7 @@ class HeadPoseEstimator:
         Returns:
             A :class:`HeadPoseResult`; never raises for bad frame content: wrong colour /
             depth arrays and missing or invalid intrinsics (not finite ``fx, fy > 0``, finite
-            ``cx, cy``; another image size) give ``INVALID_INPUT``.
+            ``cx, cy``; another image size) and a non-finite ``t`` give ``INVALID_INPUT``.
         """
         t_start = time.perf_counter()
         cfg = self.config
@@ -726,7 +728,7 @@ class HeadPoseEstimator:
         t = idx / 30.0 if t is None else float(t)
         intr = intrinsics if intrinsics is not None else self.intrinsics
         checked = self._checked_inputs(color, depth, intr)
-        if checked is None:
+        if checked is None or not math.isfinite(t):  # a NaN time made an OK pose at NaN
             return self._result(t, HeadPoseStatus.INVALID_INPUT)
         color, depth, intr = checked
         n_valid = int(np.count_nonzero((depth >= cfg.min_depth) & (depth <= cfg.max_depth)))

@@ -564,9 +564,14 @@ def _check_points(name: str, x: Array, ndim: int = 2) -> None:
 
 
 def _common_setup(source, source_valid, initial_rotation, initial_translation,
-                  max_correspondence_distance, num_iterations, loss, loss_scale, dtype):
+                  max_correspondence_distance, num_iterations, loss, loss_scale, dtype,
+                  damping):
     if loss not in _LOSSES:
         raise ValueError(f"loss must be one of {_LOSSES}, got {loss!r}")
+    if not any_traced(damping) and not (np.isfinite(damping) and damping >= 0):
+        # a negative one made the step's system indefinite: TOO_FEW_CORRESPONDENCES with
+        # thousands of inliers
+        raise ValueError(f"damping must be finite and >= 0, got {damping!r}")
     if int(num_iterations) < 0:
         raise ValueError(f"num_iterations must be >= 0, got {num_iterations}")
     n = source.shape[0]
@@ -880,7 +885,7 @@ def icp_point_to_plane(
     dtype = _float_dtype(source, target, normals)
     src, src_ok, q0, t0, dist, scale = _common_setup(
         source, source_valid, initial_rotation, initial_translation,
-        max_correspondence_distance, num_iterations, loss, loss_scale, dtype)
+        max_correspondence_distance, num_iterations, loss, loss_scale, dtype, damping)
     tgt, nrm, tgt_ok = _prepare_target(target, normals, target_valid, dtype)
     associate = _nearest_neighbour_associator(tgt, nrm, tgt_ok, src.shape[0], int(chunk_size))
 
@@ -960,7 +965,7 @@ def icp_projective(
     dtype = _float_dtype(source, tp, tn)
     src, src_ok, q0, t0, dist, scale = _common_setup(
         source, source_valid, initial_rotation, initial_translation,
-        max_correspondence_distance, num_iterations, loss, loss_scale, dtype)
+        max_correspondence_distance, num_iterations, loss, loss_scale, dtype, damping)
     fx, fy, cx, cy = _intrinsics(intrinsics, dtype)
     h, w = tp.shape[:2]
     tgt = tp.astype(dtype).reshape(-1, 3)

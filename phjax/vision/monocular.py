@@ -486,10 +486,11 @@ class MonocularHeadPose:
                                crop_quaternion=np.full(4, np.nan), method=self.method, **kw)
 
     def process(self, color: Any, t: float = 0.0) -> MonocularResult:
-        """Head pose in one ``uint8 (H, W, 3)`` BGR frame taken at time ``t`` (s)."""
-        color = np.asarray(color)
+        """Head pose in one ``uint8 (H, W, 3)`` BGR frame taken at time ``t`` (s; a non-finite
+        ``t``, like a frame of another shape or type, gives ``INVALID_INPUT``)."""
+        color, t = np.asarray(color), float(t)
         if (color.ndim != 3 or color.shape[-1] != 3 or color.dtype != np.uint8
-                or color.shape[:2] != self.intrinsics.shape):
+                or color.shape[:2] != self.intrinsics.shape or not np.isfinite(t)):
             return self._nan(t, HeadPoseStatus.INVALID_INPUT)
         if self.method == "net":
             return self._process_net(color, t)

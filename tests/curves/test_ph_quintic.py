@@ -1016,6 +1016,10 @@ def test_wrong_shapes_raise_clear_errors():
         pj.hermite_quintic(np.zeros(3) + 0j, np.ones(3), np.ones(3), np.ones(3))
     with pytest.raises(ValueError, match="num_nodes must be an integer >= 1"):
         c.bending_energy(0)
+    # -1 was taken silently (the table's start), 2.5 failed inside lax.fori_loop
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="num_iterations must be an integer >= 0"):
+            c.parameter_at_length(0.5, bad)
 
 
 # ------------------------------------------------------------------ batching / jit / vmap

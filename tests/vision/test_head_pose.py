@@ -303,8 +303,9 @@ def test_status_on_bad_frames_and_recovery(biwi, detectors):
         ((f.color.astype(np.float32), f.depth), H.HeadPoseStatus.INVALID_INPUT),
         ((None, f.depth), H.HeadPoseStatus.INVALID_INPUT),
     ]
-    for (color, depth), status in cases:
-        r = est.process(color, depth, 0.0)
+    cases.append(((f.color, f.depth), H.HeadPoseStatus.INVALID_INPUT))  # at a NaN time:
+    for k, ((color, depth), status) in enumerate(cases):  # (it was OK, stamped NaN)
+        r = est.process(color, depth, float("nan") if k == len(cases) - 1 else 0.0)
         assert r.status == status and not r.ok
         assert np.isnan(r.position).all() and np.isnan(r.quaternion).all()
     assert est.num_keyframes == 0

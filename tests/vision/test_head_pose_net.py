@@ -307,6 +307,9 @@ def test_bad_input_gives_a_clear_status(est, detector):
     assert est.process(np.zeros((450, 450, 3), np.float32)).status == \
         HeadPoseStatus.INVALID_INPUT
     assert est.process(np.full((450, 450, 3), 128, np.uint8)).status == HeadPoseStatus.NO_FACE
+    # a NaN time (its pose was OK, stamped NaN: found by review)
+    assert est.process(np.full((450, 450, 3), 128, np.uint8), float("nan")).status == \
+        HeadPoseStatus.INVALID_INPUT
     noise = np.random.default_rng(0).integers(0, 256, (450, 450, 3), dtype=np.uint8)
     assert est.process(noise).status == HeadPoseStatus.NO_FACE
 

@@ -632,6 +632,13 @@ def test_max_correspondence_distance_must_be_positive():
         with pytest.raises(ValueError, match="max_correspondence_distance must be finite"):
             icp_projective(SOURCE1, TARGET, NORMALS, K, num_iterations=3,
                            max_correspondence_distance=bad)
+    # a negative damping made the step's system indefinite (TOO_FEW_CORRESPONDENCES with
+    # thousands of inliers: found by review)
+    for bad in (-1.0, np.nan, np.inf):
+        with pytest.raises(ValueError, match="damping must be finite and >= 0"):
+            icp_point_to_plane(SOURCE1, tgt, nrm, num_iterations=3, damping=bad)
+        with pytest.raises(ValueError, match="damping must be finite and >= 0"):
+            icp_projective(SOURCE1, TARGET, NORMALS, K, num_iterations=3, damping=bad)
     # traced (inside jit) a distance <= 0 or NaN accepts no correspondence; a valid one works
     for d, status in ((-0.1, TOO_FEW_CORRESPONDENCES), (np.nan, TOO_FEW_CORRESPONDENCES),
                       (0.1, OK)):
