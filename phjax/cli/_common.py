@@ -15,6 +15,7 @@ from pathlib import Path
 
 __all__ = [
     "check_lookahead",
+    "overwritten_input",
     "Parser",
     "add_format_argument",
     "add_output_argument",
@@ -217,22 +218,33 @@ def check_output(path, what: str = "output", inputs=()) -> Path:
     """Fail early (before any computation) when ``path`` cannot be written: its folder is
     missing or it is a folder, or it is one of the command's ``inputs`` (files named on the
     command line, ``FILE#NAME`` included), which writing it would destroy."""
-    from ..io import split_trajectory_name
-
     p = Path(path)
     if p.is_dir():
         raise IsADirectoryError(21, f"Is a directory (expected an {what} file name)", str(path))
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise FileNotFoundError(2, f"No such folder for the {what} file", str(parent))
-    if p.exists():
-        for given in inputs:
-            source = Path(split_trajectory_name(given)[0])
-            if source.exists() and source.resolve() == p.resolve():
-                named = "" if os.fspath(given) == os.fspath(path) else f" {given}"
-                raise ValueError(f"{path}: is the input file{named}; writing the {what} "
-                                 "would destroy it: name another file")
+    given = overwritten_input(path, inputs)
+    if given is not None:
+        named = "" if os.fspath(given) == os.fspath(path) else f" {given}"
+        raise ValueError(f"{path}: is the input file{named}; writing the {what} would destroy "
+                         "it: name another file")
     return p
+
+
+def overwritten_input(path, inputs):
+    """The one of ``inputs`` (files named on the command line, ``FILE#NAME`` included, or a
+    ``poses:FILE`` source) that writing ``path`` would replace, else ``None``."""
+    from ..io import split_trajectory_name
+
+    p = Path(path)
+    if not p.exists():
+        return None
+    for given in inputs:
+        source = Path(split_trajectory_name(os.fspath(given).removeprefix("poses:"))[0])
+        if source.exists() and source.resolve() == p.resolve():
+            return given
+    return None
 
 
 #: figure formats by file extension (matplotlib's savefig)

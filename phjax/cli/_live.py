@@ -6,7 +6,6 @@ import argparse
 import dataclasses
 import gc
 import math
-import os
 import signal
 import sys
 import threading
@@ -19,6 +18,7 @@ from ._common import (
     file_name,
     float_between,
     nonnegative_int,
+    overwritten_input,
     positive_float,
     replaced_note,
 )
@@ -149,9 +149,7 @@ def cmd_live(args) -> int:
                       flush=True)
 
     try:
-        replayed = os.fspath(args.source).removeprefix("poses:")
-        if args.log and os.path.isfile(replayed) and os.path.isfile(args.log) \
-                and os.path.samefile(replayed, args.log):
+        if args.log and overwritten_input(args.log, [args.source]) is not None:
             raise ValueError(f"--log {args.log}: is the replayed pose file; writing the log "
                              "would destroy it: name another file")
         import jax

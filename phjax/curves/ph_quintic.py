@@ -534,12 +534,15 @@ class PHQuintic(eqx.Module):
         sigma, bn2 = self._kappa_parts(t, k)
         return safe_div(2 * safe_sqrt(bn2), sigma)
 
+    def _scale(self):
+        """The curve's scale ``|A0|^2 + |A1|^2 + |A2|^2`` (a length: the hodograph's size)."""
+        return sum(dot_last(a, a) for a in (self.A0, self.A1, self.A2))
+
     def _moving(self, speed, k: int):
         """Whether ``speed`` (at parameters with ``k`` sample axes) is above ``eps`` of the
-        curve's scale ``|A0|^2 + |A1|^2 + |A2|^2``: below it (a cusp, a resting end) the
-        derivatives are rounding noise."""
-        scale = sum(dot_last(a, a) for a in (self.A0, self.A1, self.A2))
-        return speed > jnp.finfo(self.dtype).eps * self._ex(scale[..., None], k, 1)[..., 0]
+        curve's :meth:`_scale`: below it (a cusp, a resting end) the derivatives are rounding
+        noise."""
+        return speed > jnp.finfo(self.dtype).eps * self._ex(self._scale()[..., None], k, 1)[..., 0]
 
     def _kappa_parts(self, t, k):
         """``(sigma, |vect(A* A')_yz|^2 / sigma^2)``: the curvature is ``2 sqrt(.) / sigma``.
@@ -566,9 +569,8 @@ class PHQuintic(eqx.Module):
         # the bending that rounding the data alone gives a straight segment: eps relative to
         # its size and to its distance from the origin (the chord p1 - p0 is a difference of
         # absolute points)
-        size = sum(dot_last(a, a) for a in (self.A0, self.A1, self.A2))
         far = jnp.max(jnp.abs(self.control_points), axis=(-2, -1))
-        noise = _STRAIGHT_NOISE * jnp.finfo(self.dtype).eps * (size + far)
+        noise = _STRAIGHT_NOISE * jnp.finfo(self.dtype).eps * (self._scale() + far)
         noise = self._ex(noise[..., None], k, 1)[..., 0]
         curved = jnp.maximum(jnp.abs(b[..., 1]), jnp.abs(b[..., 2])) > noise
         curved = curved | jnp.isnan(b[..., 1] + b[..., 2])  # NaN data: NaN, not 0

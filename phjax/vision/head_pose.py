@@ -68,7 +68,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .._jit import jit
-from .._np_quat import np_qconj, np_qmul, np_qnormalize, np_rotvec
+from .._np_quat import np_qconj, np_qmul, np_qnormalize, np_rotvec, np_valid_quaternions
 from .alignment import OK as ALIGN_OK
 from .alignment import align, ransac_align
 from .features import (
@@ -586,7 +586,7 @@ def _checked_reference(reference_pose) -> tuple[np.ndarray, np.ndarray]:
     if q.shape != (4,) or p.shape != (3,):
         raise ValueError(f"reference_pose must be (quaternion (4,), position (3,)), got shapes "
                          f"{q.shape} and {p.shape}")
-    if not (np.isfinite(q).all() and np.isfinite(p).all() and np.any(q != 0)):
+    if not (np_valid_quaternions(q) and np.isfinite(p).all()):
         raise ValueError(f"reference_pose must be finite with a non-zero quaternion, got "
                          f"quaternion {q} and position {p}")
     return q, p
