@@ -25,7 +25,9 @@ Conventions
   interpolant; at such an end the speed is 0 and the curve has a cusp-like end (curvature grows
   like ``1/t^2`` as ``t -> 0``, so the bending energy is unbounded). Where the speed ``sigma(t)``
   is exactly 0, ``curvature`` and ``torsion`` return 0 and ``frame`` returns the limiting frame
-  (from ``A'(t)``), or the identity for a point curve. Torsion returns 0 where curvature is 0.
+  (the ERF of ``A'(t)``; the Frenet frame's limit from ``A'`` and ``A''``, as at every speed
+  below ``eps`` of the curve's scale), or the identity for a point curve. Torsion returns 0
+  where curvature is 0.
   NaN inputs propagate to NaN outputs (no exception inside ``jit``); wrong shapes raise
   ``ValueError`` at trace time.
 * Values **and gradients** are finite at all the singular points (zero derivatives, ``p0 = p1``,
@@ -676,7 +678,10 @@ class PHQuintic(eqx.Module):
             kind: ``"euler_rodrigues"`` (ERF, rational, orientation ``A/|A|``), ``"rmf"``
                 (rotation-minimising: the ERF turned about the tangent by :meth:`rmf_angle`, equal
                 to the ERF at ``t = 0``) or ``"frenet"`` (undefined where ``kappa = 0``: there the
-                ERF normal is used; flips across inflections).
+                ERF normal is used; flips across inflections; at a zero of the speed, e.g. a
+                resting end, its one-sided limit, the same from both sides: tangent
+                ``h0/|h0|``, binormal along ``h0 x h1`` with ``h0 = A' i A'*``,
+                ``h1 = (A' i A''* + A'' i A'*)/2``).
 
         Returns:
             Rotation matrices of shape ``(*batch, T, 3, 3)``.
@@ -705,20 +710,38 @@ class PHQuintic(eqx.Module):
         sigma = dot_last(a, a, keepdims=True)
         return jnp.where(sigma > 0, quat_normalize(a), quat_normalize(da))
 
+    def _binormal_at_zero(self, t, k):
+        """``(h0 x h1, |h0| |h1|)``: the direction that ``r' x r''`` tends to at a zero ``t*``
+        of ``A`` (a resting end, a cusp), and its scale.
+
+        With ``A(t) = a s + c s^2``, ``s = t - t*``, ``a = A'(t*)``, ``c = A''/2``: ``r' = s^2 h0
+        + s^3 h1 + O(s^4)`` and ``r'' = 2 s h0 + 3 s^2 h1 + O(s^3)`` with ``h0 = a i a*``,
+        ``h1 = a i c* + c i a*``, so ``r' x r'' = s^4 h0 x h1 + O(s^5)`` on both sides of
+        ``t*`` (``A'(t)`` stands for ``a``: the direction is then ``O(s)`` off)."""
+        da = self._dA(t, k)
+        a0, a1, a2 = (self._ex(x, k, 1) for x in (self.A0, self.A1, self.A2))
+        h0, h1 = _sandwich_i(da, da), _sym_i(da, jnp.broadcast_to(a0 - 2 * a1 + a2, da.shape))
+        return jnp.cross(h0, h1), safe_norm(h0, keepdims=True) * safe_norm(h1, keepdims=True)
+
     def _frenet(self, t):
         t, k = self._prep_t(t)
         erf = quat_to_matrix(self._erf_quat(t, k))
         d1, d2, _ = self._derivs(t, k)
         tangent = erf[..., :, 0]
-        # the part of r' x r'' perpendicular to the tangent in use (the ERF's: at a zero-speed
-        # end r' is rounding noise and r' x r'' need not be perpendicular to it)
-        bvec = jnp.cross(d1, d2)
+        # r' x r'', or at a speed below eps of the curve's scale (a resting end, a cusp: there
+        # r' and r'' are rounding noise) its limit direction (the ERF's tangent is the limit
+        # of r'/|r'| there)
+        moving = self._moving(safe_norm(d1), k)[..., None]
+        at_zero, zero_scale = self._binormal_at_zero(t, k)
+        bvec = jnp.where(moving, jnp.cross(d1, d2), at_zero)
+        # the part perpendicular to the tangent in use (the ERF's)
         bvec = bvec - dot_last(bvec, tangent, keepdims=True) * tangent
         nb = safe_norm(bvec, keepdims=True)
-        # relative threshold: |r' x r''| tiny compared with |r'||r''| means kappa ~ 0; and at a
-        # speed below eps of the curve's scale (a resting end) the ERF's frame is the limit
-        scale = safe_norm(d1, keepdims=True) * safe_norm(d2, keepdims=True)
-        ok = (nb > 1e-12 * scale) & self._moving(safe_norm(d1), k)[..., None]
+        # relative threshold: |r' x r''| tiny compared with |r'||r''| means kappa ~ 0 (there
+        # the ERF's binormal is used)
+        scale = jnp.where(moving, safe_norm(d1, keepdims=True) * safe_norm(d2, keepdims=True),
+                          zero_scale)
+        ok = nb > 1e-12 * scale
         binormal = jnp.where(ok, bvec / jnp.where(ok, nb, 1), erf[..., :, 2])
         normal = jnp.cross(binormal, tangent)
         return jnp.stack([tangent, normal, binormal], axis=-1)

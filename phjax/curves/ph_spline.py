@@ -13,7 +13,11 @@ frame intervals). The unknowns must satisfy the interpolation equations
 ``int_0^1 A_k i A_k* dt = p_k - p_{k-1}`` (3 per segment) and optionally clamped end derivatives
 ``A_1(0) i A_1(0)* = d_start``, ``A_N(1) i A_N(1)* = d_end``. That leaves ``N + 2`` free
 dimensions (4 fewer equations than unknowns per segment, minus the clamps), one of them the
-trivial common phase ``Z_k -> Z_k exp(theta i)``. Following ``../shared/docs/ph_math.md`` §6 they
+trivial common phase ``Z_k -> Z_k exp(theta i)``. A clamp **at rest** (``|d|`` within the
+feasibility tolerance of 0: a head at rest at that end) is solved as the equivalent ``A_1(0) = 0``
+(``|A i A*| = |A|^2``; 4 linear equations, one free dimension fewer): the quadratic form has a
+zero Jacobian there, on which Levenberg-Marquardt stalled (residual about ``1e-6``, ``FAILED``)
+and no multipliers certify stationarity. Following ``../shared/docs/ph_math.md`` §6 they
 are fixed by minimising the fairness measure ``sum_k |Z_{k-1} - 2 Z_k + Z_{k+1}|^2`` subject to
 the equations; the common phase is fixed by one linear gauge condition (orthogonality of the
 correction to the phase direction at the start).
@@ -185,17 +189,72 @@ def _initial(p, d_start, d_end, clamp_start, clamp_end):
 _ALM_ITERS = 8
 
 
+def _tolerance(dtype) -> float:
+    """Feasibility and stationarity tolerance of the scaled problem (unit mean chord)."""
+    return 1e-6 if dtype == jnp.float64 else 1e-3
+
+
+def _at_rest(d):
+    """Whether the clamped end derivative ``d`` (scaled problem) counts as zero: ``|d|`` within
+    the feasibility tolerance, so that the resting end ``A(0) = 0`` meets ``A(0) i A(0)* = d``
+    to tolerance (see :func:`_clamp_rows`)."""
+    return safe_norm(d) <= _tolerance(d.dtype)
+
+
+def _start(dp, ds, de, clamp_start, clamp_end):
+    """:func:`_initial` of the scaled problem (a clamp at rest as exact zero)."""
+    p = jnp.concatenate([jnp.zeros((1, 3), dp.dtype), jnp.cumsum(dp, 0)], 0)
+    zero = lambda d: jnp.where(_at_rest(d), 0, d)
+    return _initial(p, zero(ds), zero(de), clamp_start, clamp_end)
+
+
+def _clamp_rows(a, d, rest):
+    """The clamp ``a i a* = d`` of an end coefficient ``a`` as 4 rows, regular at the solution.
+
+    ``|a i a*| = |a|^2``, so at rest (``rest``: ``d`` counts as 0) the clamp is ``a = 0``: 4
+    linear rows. Its 3 quadratic rows have a Jacobian ``2 (a i x* + x i a*)`` that vanishes
+    there: Levenberg-Marquardt then converges sublinearly (its damping dominates the vanishing
+    curvature; the residual stalled near ``1e-6``, FAILED) and the multipliers that certify
+    stationarity do not exist (NOT_FAIREST). Otherwise the 3 quadratic rows and a zero row
+    (:func:`_padding` marks it)."""
+    quad = _sandwich(a, a) - d
+    return jnp.where(rest, a, jnp.concatenate([quad, jnp.zeros_like(quad[:1])]))
+
+
+def _clamps(Z, ds, de, clamp_start, clamp_end):
+    """``(end coefficient, clamped derivative)`` of each clamped end, start first."""
+    A0, _, A2 = _coefficients(Z)
+    return [(a, d) for on, a, d in ((clamp_start, A0[0], ds), (clamp_end, A2[-1], de)) if on]
+
+
+def _interpolation(Z, dp):
+    """The interpolation equations ``int_0^1 A_k i A_k* dt - (p_k - p_{k-1})``, flat."""
+    return (_displacement(*_coefficients(Z)) - dp).reshape(-1)
+
+
+def _residuals(Z, dp, ds, de, clamp_start, clamp_end):
+    """The interpolation and clamp equations as stated (``A i A* = d`` at a clamped end),
+    whose largest violation is the reported ``residual``."""
+    clamps = [_sandwich(a, a) - d for a, d in _clamps(Z, ds, de, clamp_start, clamp_end)]
+    return jnp.concatenate([_interpolation(Z, dp), *clamps])
+
+
 def _constraints(Z, dp, ds, de, Z0, clamp_start, clamp_end):
-    """Interpolation (+ clamp) equations, then the gauge row (no motion along the common
-    phase of the start ``Z0``)."""
-    A0, A1, A2 = _coefficients(Z)
-    parts = [(_displacement(A0, A1, A2) - dp).reshape(-1)]
-    if clamp_start:
-        parts.append(_sandwich(A0[0], A0[0]) - ds)
-    if clamp_end:
-        parts.append(_sandwich(A2[-1], A2[-1]) - de)
-    parts.append(jnp.sum((Z - Z0) * _times_i(Z0))[None])
-    return jnp.concatenate(parts)
+    """The equations the solver meets: interpolation, each clamp as :func:`_clamp_rows`, then
+    the gauge row (no motion along the common phase of the start ``Z0``)."""
+    clamps = [_clamp_rows(a, d, _at_rest(d))
+              for a, d in _clamps(Z, ds, de, clamp_start, clamp_end)]
+    gauge = jnp.sum((Z - Z0) * _times_i(Z0))[None]
+    return jnp.concatenate([_interpolation(Z, dp), *clamps, gauge])
+
+
+def _padding(n, ds, de, clamp_start, clamp_end):
+    """Mask of the rows of :func:`_constraints` that are identically zero (the fourth row of a
+    clamp not at rest)."""
+    rows = [jnp.zeros(3 * n, bool)]
+    rows += [jnp.zeros(4, bool).at[3].set(~_at_rest(d))
+             for on, d in ((clamp_start, ds), (clamp_end, de)) if on]
+    return jnp.concatenate(rows + [jnp.zeros(1, bool)])
 
 
 def _multipliers(Z, cons):
@@ -215,16 +274,15 @@ def _core(dp, ds, de, settings):
     clamp_start, clamp_end, max_steps, rtol, atol = settings
     dtype = dp.dtype
     n = dp.shape[0]
-    p = jnp.concatenate([jnp.zeros((1, 3), dtype), jnp.cumsum(dp, 0)], 0)
-    Z0 = lax.stop_gradient(_initial(p, ds, de, clamp_start, clamp_end))
+    Z0 = lax.stop_gradient(_start(dp, ds, de, clamp_start, clamp_end))
 
     def constraints(Z):
         return _constraints(Z, dp, ds, de, Z0, clamp_start, clamp_end)
 
-    tol = 1e-6 if dtype == jnp.float64 else 1e-3
+    tol = _tolerance(dtype)
 
     def max_resid(Z):
-        r = jnp.max(jnp.abs(constraints(Z)[:-1]))
+        r = jnp.max(jnp.abs(_residuals(Z, dp, ds, de, clamp_start, clamp_end)))
         return jnp.where(jnp.isfinite(r), r, jnp.inf)
 
     lm = optx.LevenbergMarquardt(rtol=rtol, atol=atol * 1e-2)
@@ -286,8 +344,7 @@ def _core_jvp(settings, primals, tangents):
     clamp_start, clamp_end = settings[0], settings[1]
     Z, aux = _core(dp, ds, de, settings)
     shape = Z.shape
-    p = jnp.concatenate([jnp.zeros((1, 3), dp.dtype), jnp.cumsum(dp, 0)], 0)
-    Z0 = _initial(p, ds, de, clamp_start, clamp_end)
+    Z0 = _start(dp, ds, de, clamp_start, clamp_end)
 
     def cons(zf, data):
         return _constraints(zf.reshape(shape), *data, Z0, clamp_start, clamp_end)
@@ -301,8 +358,9 @@ def _core_jvp(settings, primals, tangents):
 
     H = jax.jacfwd(grad_lag)(zf, data)
     J = jax.jacfwd(cons)(zf, data)
-    m = J.shape[0]
-    K = jnp.block([[H, J.T], [J, jnp.zeros((m, m), H.dtype)]])
+    # an identically zero row (_padding) gets the equation lam_row = 0 (else K is singular)
+    pad = jnp.diag(_padding(dp.shape[0], ds, de, clamp_start, clamp_end).astype(H.dtype))
+    K = jnp.block([[H, J.T], [J, -pad]])
     tdata = (tdp, tds, tde)
     _, rhs_g = jax.jvp(lambda d: grad_lag(zf, d), (data,), (tdata,))
     _, rhs_c = jax.jvp(lambda d: cons(zf, d), (data,), (tdata,))
@@ -349,6 +407,10 @@ def ph_spline(
         points: ``(N + 1, 3)`` points, ``N >= 2``, finite.
         d_start, d_end: optional clamped end derivatives with respect to the segment parameter
             (velocity x segment duration). Omitted ends are free (the fairness measure decides).
+            A clamp within the feasibility tolerance of 0 (``1e-6`` of the mean chord in
+            float64, ``1e-3`` in float32) is an end at rest, ``A(0) = 0`` exactly (the residual
+            reports the ``|d|`` this leaves); its derivative with respect to that ``d`` is 0, as
+            :func:`phjax.hermite_quintic` treats a zero end derivative.
         max_steps: step scale of the Levenberg-Marquardt solves: the feasibility solve runs
             up to ``4 * max_steps`` steps, each augmented-Lagrangian subproblem and the final
             projection up to ``2 * max_steps``.

@@ -167,7 +167,7 @@ class ShapeStatus(enum.IntEnum):
       the inverse end speed for every angle pair and its quadrature is unreliable (measured on
       random segments with 32 nodes: error up to 0.3 % at that ratio, 9 % at 1e-3, 100 % at
       1e-6), so the closed-form default angles are returned, unoptimised (and held fixed under
-      differentiation).
+      differentiation). :func:`grid_search_shape` reports it for the same segments.
     """
 
     SUCCESS = 0
@@ -811,13 +811,36 @@ class _Settings(eqx.Module):
     constraint_rtol: float = eqx.field(static=True)
 
 
-def _degenerate_mask(cfg: _Config, p0, p1, d0, d1):
-    """Energy objectives: an end derivative below ``_REST_RATIO`` of the segment scale."""
+def _degenerate_mask(cfg: _Config, finite, p0, p1, d0, d1):
+    """The ``DEGENERATE`` segments of :func:`optimize_shape` and :func:`grid_search_shape`
+    (one rule for both): energy objectives, finite data (``finite``, see :func:`_finite_mask`)
+    with an end derivative below ``_REST_RATIO`` of the segment scale."""
     if cfg.objective not in ("bending_energy", "torsion_energy"):
         return jnp.zeros(p0.shape[:1], bool)
     n0, n1 = safe_norm(d0), safe_norm(d1)
     scale = n0 + n1 + safe_norm(p1 - p0)
-    return jnp.minimum(n0, n1) <= _REST_RATIO * scale
+    return (jnp.minimum(n0, n1) <= _REST_RATIO * scale) & finite
+
+
+def _record(finite, rest, phi, status, objective, kap, tau, viol, feas, steps) -> ShapeSolution:
+    """The :class:`ShapeSolution` of :func:`optimize_shape` and :func:`grid_search_shape` (one
+    rule for both, so that the reference pair report the same status for the same segment):
+    ``status`` of the solver, ``DEGENERATE`` where ``rest`` (:func:`_degenerate_mask`), and
+    ``FAILED`` for non-finite data (``finite`` false), with angles 0 and numeric fields ``inf``.
+
+    Arguments:
+        finite, rest: ``(n,)`` bool masks.
+        phi: ``(n, 2)`` angles; status, steps: ``(n,)`` integer codes and step counts.
+        objective, kap, tau, viol, feas: ``(n,)`` value and report of the returned curves.
+    """
+    status = jnp.where(rest, ShapeStatus.DEGENERATE, status)
+    status = jnp.where(finite, status, ShapeStatus.FAILED).astype(jnp.int32)
+    phi = jnp.where(finite[:, None], phi, 0)
+    bad = lambda x: jnp.where(finite, x, jnp.asarray(jnp.inf, x.dtype))
+    return ShapeSolution(
+        phi0=phi[:, 0], phi2=phi[:, 1], status=status, objective=bad(objective),
+        max_curvature=bad(kap), max_torsion=bad(tau), max_violation=bad(viol),
+        feasible=feas & finite, num_steps=steps.astype(jnp.int32))
 
 
 def _cc_batch(p0, p1, d0, d1, axis):
@@ -847,7 +870,7 @@ def _solve_jit(st: _Settings, p0, p1, d0, d1, kmax, tmax, axis):
     ax = None if axis is None else clean(axis, 1.0)
     segs = _segments(*data, clean(kmax, 1.0), clean(tmax, 1.0), ax)
     cc = _cc_batch(*data, ax)
-    rest = _degenerate_mask(cfg, *data)
+    rest = _degenerate_mask(cfg, finite, *data)
     segs, phis, F, V = jax.vmap(lambda s: _seed_grid(cfg, s, st.seed_grid))(segs)
     solver = optx.BFGS(rtol=st.rtol, atol=st.atol)
 
@@ -943,13 +966,12 @@ def _outputs_jit(st: _Settings, p0, p1, d0, d1, kmax, tmax, axis, phi, lam, phas
                  tpk, code, steps):
     """Differentiable curve and record at the solver's angles (implicit-function derivatives)."""
     cfg = st.cfg
-    dtype = p0.dtype
     finite = _finite_mask(p0, p1, d0, d1, kmax, tmax, axis)
     live = _segments(p0, p1, d0, d1, kmax, tmax, axis)
     live = eqx.tree_at(lambda s: s.fscale, live, jax.lax.stop_gradient(fscale))
     theta = jax.vmap(_theta)(p0, p1, d0, d1, kmax, tmax)
     ax = None if axis is None else jax.lax.stop_gradient(axis)
-    rest = _degenerate_mask(cfg, p0, p1, d0, d1) & finite
+    rest = _degenerate_mask(cfg, finite, p0, p1, d0, d1)
 
     def finish(s, th, x, ph, lm, p2, tp, r):
         # resting (DEGENERATE) segments: the closed-form angles, held fixed under derivatives
@@ -965,15 +987,7 @@ def _outputs_jit(st: _Settings, p0, p1, d0, d1, kmax, tmax, axis, phi, lam, phas
         live, theta, ax, phi, lam, phase2, tpk, rest)
     status = jnp.where(phase2, jnp.where(feas, ShapeStatus.FEASIBLE_ONLY, ShapeStatus.INFEASIBLE),
                        jnp.where(feas, code, ShapeStatus.INFEASIBLE))
-    status = jnp.where(rest, ShapeStatus.DEGENERATE, status)
-    status = jnp.where(finite, status, ShapeStatus.FAILED).astype(jnp.int32)
-    inf = jnp.asarray(jnp.inf, dtype)
-    bad = lambda x: jnp.where(finite, x, inf)
-    sol = ShapeSolution(
-        phi0=phi[:, 0], phi2=phi[:, 1], status=status, objective=bad(f), max_curvature=bad(kap),
-        max_torsion=bad(tau), max_violation=bad(viol), feasible=feas & finite,
-        num_steps=steps.astype(jnp.int32))
-    return curve, sol
+    return curve, _record(finite, rest, phi, status, f, kap, tau, viol, feas, steps)
 
 
 # ---------------------------------------------------------------------------- public API
@@ -1147,8 +1161,12 @@ def _grid_pick(f, q, g0, g2):
 def _grid_jit(cfg, p0, p1, d0, d1, kmax, tmax, axis, n, refine, report_points, constraint_rtol):
     dtype = p0.dtype
     k = jnp.arange(-4, 5, dtype=dtype)
+    finite = _finite_mask(p0, p1, d0, d1, kmax, tmax, axis)
+    rest = _degenerate_mask(cfg, finite, p0, p1, d0, d1)
+    # resting (DEGENERATE) segments: the closed-form angles, as optimize_shape returns them
+    cc = jax.lax.stop_gradient(_cc_batch(p0, p1, d0, d1, axis))
 
-    def one(seg):
+    def one(seg, r, cc):
         g = -jnp.pi + 2 * jnp.pi * (jnp.arange(n, dtype=dtype) + 0.5) / n
         best = _grid_pick(*_grid_values(cfg, seg, g, g), g, g)
 
@@ -1160,19 +1178,17 @@ def _grid_jit(cfg, p0, p1, d0, d1, kmax, tmax, axis, n, refine, report_points, c
 
         h0 = jnp.asarray(2 * np.pi / n, dtype)
         (best, _), _ = jax.lax.scan(zoom, (best, h0), None, length=refine)
-        phi = _wrap(best)
+        phi = _wrap(jnp.where(r, cc, best))
         A = seg.coefficients(phi)
         f = cfg.measure(seg, *A, cfg.num_nodes)
         return (phi, _from_coefficients(seg.p0, *A), f) + _report(
             seg, *A, report_points, constraint_rtol)
 
     phi, curve, f, kap, tau, viol, feas = jax.vmap(one)(
-        _segments(p0, p1, d0, d1, kmax, tmax, axis))
-    status = jnp.where(feas, ShapeStatus.SUCCESS, ShapeStatus.INFEASIBLE).astype(jnp.int32)
-    sol = ShapeSolution(phi0=phi[:, 0], phi2=phi[:, 1], status=status, objective=f,
-                        max_curvature=kap, max_torsion=tau, max_violation=viol, feasible=feas,
-                        num_steps=jnp.zeros(status.shape, jnp.int32))
-    return curve, sol
+        _segments(p0, p1, d0, d1, kmax, tmax, axis), rest, cc)
+    status = jnp.where(feas, ShapeStatus.SUCCESS, ShapeStatus.INFEASIBLE)
+    return curve, _record(finite, rest, phi, status, f, kap, tau, viol, feas,
+                          jnp.zeros(status.shape, jnp.int32))
 
 
 def grid_search_shape(
@@ -1203,7 +1219,10 @@ def grid_search_shape(
     **untightened** bounds; the best feasible point wins, else the point with the smallest
     maximal ratio (least violation). Objective definitions and keywords as in
     :func:`optimize_shape`. ``status`` is ``SUCCESS`` or ``INFEASIBLE`` (judged like
-    :func:`optimize_shape`, on the dense report grid) and ``num_steps`` is 0.
+    :func:`optimize_shape`, on the dense report grid), and by the same rule as
+    :func:`optimize_shape` (one shared code path) ``DEGENERATE`` for a resting end under an
+    energy objective (the closed-form angles are returned, as there) and ``FAILED`` for
+    non-finite data; ``num_steps`` is 0.
 
     Cost: ``n^2 + 81 refine`` objective evaluations per segment; memory ``O(n)`` per segment
     (the grid is scanned row by row).
