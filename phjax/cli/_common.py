@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 from pathlib import Path
 
 __all__ = [
@@ -53,12 +54,28 @@ def check_lookahead(ms: float) -> float:
     return ms / 1e3
 
 
+#: a command-line word that is a value, never an option: '-' then a digit, or '-.' then a digit
+#: (``-5``, ``-0.5,2``, ``-.5``, ``-1e3``); no phjax option starts that way
+_NEGATIVE_VALUE = re.compile(r"-\.?\d")
+
+
 class Parser(argparse.ArgumentParser):
     """``argparse.ArgumentParser`` whose usage errors are one line (exit status 2):
-    ``phjax smooth: error: argument --rate: ... (see 'phjax smooth --help')``."""
+    ``phjax smooth: error: argument --rate: ... (see 'phjax smooth --help')``.
+
+    A word that starts with ``-`` and a digit (``-5,1``, ``-0.5,2``, ``-.5``) is a value, as
+    the option before it expects: argparse reads only a plain negative number (``-5``,
+    ``-0.5``) that way and took ``--measurement-noise -5,1`` for two options ("expected one
+    argument") instead of giving the option's own message. The commands' parsers are made by
+    ``add_subparsers`` with this class, so every command reads values so."""
 
     #: the commands' parsers by name (set on the top-level parser)
     commands: dict[str, argparse.ArgumentParser] = {}
+
+    def _parse_optional(self, arg_string):
+        if _NEGATIVE_VALUE.match(arg_string):
+            return None  # a positional word: the value of the option before it
+        return super()._parse_optional(arg_string)
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")

@@ -156,12 +156,16 @@ def cmd_live(args) -> int:
 
         jax.config.update("jax_enable_x64", True)
         jax.config.update("jax_cpu_enable_async_dispatch", False)
-        from ..live import LiveTracker, live_tracker_config, open_source
+        from ..live import LiveTracker, PoseReplaySource, live_tracker_config, open_source
         from ..live._udp import UdpSource
 
         source = open_source(args.source, model_dir=args.model_dir, ipd=args.ipd, fov=args.fov,
                              monocular=args.monocular, head_size=args.head_size,
                              format=args.format)
+        if isinstance(source, PoseReplaySource) and source.out_of_range_text():
+            report(f"phjax live: warning: {args.source.removeprefix('poses:')}: "
+                   f"{source.out_of_range_text()}: replayed as lost frames (OUT_OF_RANGE in "
+                   "the status line)")
         if isinstance(source, UdpSource):
             source.report = report  # from the capture thread
             source.open()  # a port in use fails now, not after the tracker's compilation
@@ -257,7 +261,9 @@ def add_commands(sub) -> None:
         "RGB-D folder (Biwi, TUM RGB-D, color/+depth/), webcam[:INDEX] or a video file "
         "(monocular: opentrack's head-pose network, or --monocular landmarks; a file plays at "
         "its own timestamps, at 30 fps when its header's frame rate is outside 1-240), "
-        "realsense[:SERIAL] (pyrealsense2), poses:FILE (replay a pose file), "
+        "realsense[:SERIAL] (pyrealsense2), poses:FILE (replay a pose file; rows with a "
+        "position beyond 10 m, not a head pose, are replayed as lost frames and counted "
+        "OUT_OF_RANGE, and a file of fewer than 2 usable poses is an error), "
         "udp://[HOST]:PORT (another tracker's opentrack UDP datagrams: x y z cm, yaw pitch "
         "roll deg; HOST default 0.0.0.0; add ?noise=monocular for a webcam tracker). Stops at "
         "the end of the source, after --duration, on Ctrl-C or SIGTERM; SIGUSR1 re-centres. "

@@ -134,8 +134,10 @@ clear it.
 
 Bad input (a missing, empty or malformed file, a folder, too few poses, a rate <= 0, an unknown
 format) ends with one line 'phjax <command>: error: ...' naming the file (and the line) on
-stderr and exit status 2. Output files are named in each command's --help; an existing file is
-replaced and the line naming the written file says so."""
+stderr and exit status 2. A value that starts with '-' and a digit (--measurement-noise -5,1,
+--intrinsics -5,...) is the option's value, checked by the option. Output files are named in
+each command's --help; an existing file is replaced and the line naming the written file says
+so."""
 
 
 class _Version(argparse.Action):

@@ -36,15 +36,37 @@ def _relative_rotation_errors(est_q: np.ndarray, gt_q: np.ndarray) -> np.ndarray
 
 
 def _intrinsics(text: str) -> tuple[float, ...]:
-    """argparse type: ``FX,FY,CX,CY`` (finite; focal lengths > 0)."""
+    """argparse type: ``FX,FY,CX,CY`` in pixels: four finite numbers, focal lengths > 0, the
+    principal point ``CX, CY >= 0`` (checked against the image's size by
+    :func:`_check_principal_point` once the first frame is read)."""
     try:
         vals = tuple(float(v) for v in text.split(","))
     except ValueError:
         vals = ()
-    if len(vals) != 4 or not all(np.isfinite(vals)) or min(vals[:2]) <= 0:
+    if len(vals) != 4 or not all(np.isfinite(vals)):
         raise argparse.ArgumentTypeError(
-            f"expected FX,FY,CX,CY (pixels, focal lengths > 0), got {text!r}")
+            f"expected FX,FY,CX,CY (four finite numbers, pixels), got {text!r}")
+    if min(vals[:2]) <= 0:
+        raise argparse.ArgumentTypeError(
+            f"focal lengths FX, FY must be > 0 pixels, got {text!r}")
+    if min(vals[2:]) < 0:
+        raise argparse.ArgumentTypeError(
+            f"the principal point CX, CY must lie in the image (pixels >= 0), got {text!r}")
     return vals
+
+
+def _check_principal_point(intrinsics, given, source) -> None:
+    """``--intrinsics``' principal point against the size of the first image (the readers set
+    ``intrinsics.width`` / ``height`` from it): a ``ValueError`` naming the option when it lies
+    outside the image (pixel centres ``0 .. W-1``, ``0 .. H-1``), as a centre given for
+    another resolution or the focal lengths and centre swapped."""
+    w, h = intrinsics.width, intrinsics.height
+    cx, cy = float(intrinsics.cx), float(intrinsics.cy)
+    if not (0 <= cx <= w - 1 and 0 <= cy <= h - 1):
+        text = ",".join(f"{v:g}" for v in given)
+        raise ValueError(f"--intrinsics {text}: the principal point (CX {cx:g}, CY {cy:g}) lies "
+                         f"outside the {w} x {h} images of {source} (CX 0-{w - 1}, CY "
+                         f"0-{h - 1} pixels)")
 
 
 def _reader_options(args) -> dict:
@@ -115,6 +137,8 @@ def cmd_track_rgbd(args) -> int:
         check_fits({f"{source} ({frames} frames)": (frames, BYTES_PER_CAMERA_FRAME)},
                    "give fewer frames (N, or --max-frames)")
     seq = open_rgbd(source, **_reader_options(args))
+    if args.intrinsics is not None:
+        _check_principal_point(seq.intrinsics, args.intrinsics, args.source)
     n = len(seq) if args.max_frames is None else min(len(seq), args.max_frames)
     if n == 0:
         raise ValueError(f"{args.source}: no frames")
@@ -256,11 +280,14 @@ def add_commands(sub) -> None:
     p.add_argument("--depth-scale", type=positive_float, default=None, metavar="UNITS",
                    help="depth image units per metre, for TUM RGB-D and color/ + depth/ folders "
                    "(default: the layout's own, TUM 5000, color/ + depth/ 1000; e.g. 1000 for "
-                   "millimetre PNGs in a TUM-layout folder)")
+                   "millimetre PNGs in a TUM-layout folder). Depth images must be 16-bit "
+                   "(uint16) or float: an 8-bit one is an error naming the file")
     p.add_argument("--intrinsics", type=_intrinsics, default=None, metavar="FX,FY,CX,CY",
                    help="colour camera intrinsics in pixels, for TUM RGB-D and color/ + depth/ "
-                   "folders (default: TUM Freiburg 1/2/3 from the folder name, else the ROS "
-                   "defaults 525,525,319.5,239.5; color/ + depth/: slambook's)")
+                   "folders: focal lengths > 0, the principal point within the images "
+                   "(checked against the first one's size) (default: TUM Freiburg 1/2/3 from "
+                   "the folder name, else the ROS defaults 525,525,319.5,239.5; color/ + "
+                   "depth/: slambook's)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_noise_argument(p, has_config=False)
     p.set_defaults(func=cmd_track_rgbd)

@@ -27,7 +27,10 @@ an RGB-D recording
     aligned to colour, RGB-D front-end.
 ``poses:FILE``
     a pose file (any format :func:`phjax.io.read_trajectory` reads) replayed at its
-    timestamps, no vision.
+    timestamps, no vision. A row with a position coordinate beyond :data:`MAX_POSITION_M`
+    (10 m: not a head pose; a file in millimetres read as metres, a corrupt row) never reaches
+    the tracker: it is replayed as a lost frame with the status ``OUT_OF_RANGE``; a file with
+    fewer than 2 usable poses is a :class:`SourceError`.
 ``udp://[HOST]:PORT``
     another tracker's poses as opentrack UDP datagrams (:class:`phjax.live.UdpSource`),
     time-stamped on arrival, no vision.
@@ -51,6 +54,7 @@ import shutil
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -84,6 +88,10 @@ WEBCAM_INDEX_LIMIT = 100
 VIDEO_RATES = (1.0, 240.0)
 #: the frame rate of a video file whose header gives none in :data:`VIDEO_RATES`, Hz
 DEFAULT_VIDEO_RATE = 30.0
+#: a position coordinate beyond this (m) is not a head pose: a ``poses:FILE`` row or a
+#: ``udp://`` datagram (:data:`phjax.live._udp.MAX_POSITION_CM`) beyond it never reaches the
+#: tracker (positions of 1e150 m made its stream non-finite: nothing was sent, silently)
+MAX_POSITION_M = 10.0
 
 
 _SYNTHETIC_USAGE = "use synthetic[:N[:SEED]] (N >= 1 frames, 0 <= SEED < 2**32)"
@@ -212,6 +220,22 @@ class PoseReplaySource(Source):
         self.name = name
         dt = np.diff(self.times)
         self.rate = float(1.0 / np.median(dt)) if n > 1 and np.median(dt) > 0 else None
+        #: rows whose position is not a head pose (a coordinate beyond MAX_POSITION_M, or
+        #: infinite): replayed as lost frames with the status ``"OUT_OF_RANGE"``
+        with np.errstate(invalid="ignore"):
+            self.out_of_range = np.any(np.isinf(self.positions)
+                                       | (np.abs(self.positions) > MAX_POSITION_M), axis=-1)
+
+    def out_of_range_text(self) -> str:
+        """What :attr:`out_of_range` drops, one line (``""`` when nothing): how many rows,
+        the bound and the largest coordinate."""
+        bad = int(np.count_nonzero(self.out_of_range))
+        if not bad:
+            return ""
+        return (f"{bad} of {self.times.shape[0]} rows hold a position beyond "
+                f"+-{MAX_POSITION_M:g} m, not a head pose (largest |coordinate| "
+                f"{float(np.nanmax(np.abs(self.positions[self.out_of_range]))):.3g} m; "
+                "positions are read in metres)")
 
     @classmethod
     def from_file(cls, path, format: str = "auto") -> PoseReplaySource:
@@ -224,14 +248,29 @@ class PoseReplaySource(Source):
             raise SourceError(f"pose file not found: {spec}")
         if Path(spec).is_dir():
             raise SourceError(f"{spec}: a folder (poses:FILE takes a pose file)")
-        try:
-            traj = read_trajectory_spec(path, format, syntax="poses:FILE#NAME")
-        except ValueError as e:  # a bad file, or FILE#NAME missing / wrong: one line
-            raise SourceError(str(e).replace("pass format= one of", "pass --format, one of")
-                              ) from None
+        # the reader's warnings (a unit warning for positions of 1e150 m) only for a file that
+        # is replayed: an unusable one ends in one line that says it all
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                traj = read_trajectory_spec(path, format, syntax="poses:FILE#NAME")
+            except ValueError as e:  # a bad file, or FILE#NAME missing / wrong: one line
+                raise SourceError(str(e).replace("pass format= one of",
+                                                 "pass --format, one of")) from None
         if traj.num_samples < 2:  # as phjax smooth: one pose is no motion to replay
             raise SourceError(f"{path}: {traj.num_samples} pose(s); a replay needs at least 2")
-        return cls(traj.times, traj.positions, traj.quaternions, name=f"poses {path}")
+        source = cls(traj.times, traj.positions, traj.quaternions, name=f"poses {path}")
+        posed = np.isfinite(traj.quaternions).all(-1) | np.isfinite(traj.positions).all(-1)
+        usable = int(np.count_nonzero(posed & ~source.out_of_range))
+        if usable < 2:  # nothing the tracker could follow: it sent nothing and said nothing
+            lost = int(np.count_nonzero(~posed))
+            why = [source.out_of_range_text()] + (
+                [f"{lost} lost frame(s) (no position and no orientation)"] if lost else [])
+            raise SourceError(f"{path}: {'; '.join(w for w in why if w)}; {usable} usable "
+                              "pose(s), a replay needs at least 2")
+        for w in caught:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        return source
 
     def run(self, clock, t0, stop, emit) -> None:
         t_first = self.times[0]
@@ -240,7 +279,10 @@ class PoseReplaySource(Source):
             clock.sleep_until(t, stop)
             if stop.is_set():
                 return
-            emit(Measurement(t, self.positions[i], self.quaternions[i]))
+            if self.out_of_range[i]:  # never to the tracker: a lost frame, counted by reason
+                emit(Measurement(t, *_nan_pose(), status="OUT_OF_RANGE"))
+            else:
+                emit(Measurement(t, self.positions[i], self.quaternions[i]))
 
 
 # ------------------------------------------------------------------------------- RGB-D

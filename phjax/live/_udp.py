@@ -47,7 +47,7 @@ from collections.abc import Callable
 import numpy as np
 
 from .._np_quat import np_axis_quat, np_qmul
-from ._sources import Measurement, Source, SourceError
+from ._sources import MAX_POSITION_M, Measurement, Source, SourceError
 from ._url import url_extras, url_options, url_port
 
 __all__ = [
@@ -62,8 +62,9 @@ __all__ = [
 _PACK = struct.Struct("<6d")
 #: bytes of one opentrack datagram (six float64)
 DATAGRAM_SIZE = _PACK.size
-#: a position coordinate beyond this (cm, 10 m) is not a head pose: the datagram is dropped
-MAX_POSITION_CM = 1000.0
+#: a position coordinate beyond this (cm, 10 m: the bound of ``poses:FILE`` rows too,
+#: :data:`phjax.live._sources.MAX_POSITION_M`) is not a head pose: the datagram is dropped
+MAX_POSITION_CM = 100.0 * MAX_POSITION_M
 #: an angle beyond this (degrees) is not a head pose: the datagram is dropped
 MAX_ANGLE_DEG = 360.0
 #: the fields of a datagram, in order

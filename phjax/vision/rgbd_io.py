@@ -31,6 +31,10 @@ Formats
     scale and intrinsics (:func:`read_rgbd_pair`); :func:`read_slambook` reads the
     ``color/N.png``, ``depth/N.pgm``, ``pose.txt`` layout of the slambook2 chapter-5 data.
 
+Depth images are 16-bit (``uint16``), ``int32`` or float, one channel: an 8-bit one is a
+:class:`RGBDFormatError` naming the file, for a TUM or ``color/`` + ``depth/`` folder already
+when it is opened (its first depth image is checked).
+
 :func:`open_rgbd` detects the layout of a folder and returns a lazily loaded
 :class:`RGBDSequence`. Malformed files raise :class:`RGBDFormatError` (a ``ValueError``) naming
 the file and the problem. PNG decoding uses OpenCV when installed, else Pillow.
@@ -406,12 +410,39 @@ def _color(path: PathLike) -> np.ndarray:
     return np.ascontiguousarray(img[..., :3])
 
 
+def _check_depth(path: PathLike, raw: np.ndarray) -> None:
+    """A depth image must be one channel of 16-bit (``uint16``), ``int32`` or float values.
+
+    Raises:
+        RGBDFormatError: an 8-bit image (256 levels are not a depth measurement: an 8-bit
+            export or a visualisation, whose every frame ended as ``NO_DEPTH``), several
+            channels or another type.
+    """
+    if raw.ndim == 2 and raw.dtype == np.uint8:
+        raise RGBDFormatError(path, "an 8-bit depth image; depth must be 16-bit (uint16, e.g. "
+                              "millimetres) or float (an 8-bit export or a visualisation holds "
+                              "no usable depth)")
+    if raw.ndim != 2 or not (raw.dtype in (np.uint16, np.int32) or raw.dtype.kind == "f"):
+        raise RGBDFormatError(path, f"expected a single-channel 16-bit or float depth image, "
+                              f"got {raw.dtype} {raw.shape}")
+
+
 def _depth_image(path: PathLike, scale: float) -> np.ndarray:
+    """A depth image (:func:`_check_depth`) in metres, ``scale`` units per metre."""
     raw = read_image(path, unchanged=True)
-    if raw.ndim != 2 or raw.dtype not in (np.uint16, np.uint8, np.int32, np.float32):
-        raise RGBDFormatError(path, f"expected a single-channel depth image, got {raw.dtype} "
-                              f"{raw.shape}")
+    _check_depth(path, raw)
     return (raw.astype(np.float32) / np.float32(scale)).astype(np.float32)
+
+
+def _check_first_depth(path: PathLike) -> None:
+    """:func:`_check_depth` for a sequence's first depth image, when the sequence is opened:
+    an 8-bit depth folder fails at once instead of ending every frame as ``NO_DEPTH``. A
+    missing or damaged file is left to its frame (the readers' callers lose that frame)."""
+    try:
+        raw = read_image(path, unchanged=True)
+    except (OSError, RGBDFormatError):
+        return
+    _check_depth(path, raw)
 
 
 # -------------------------------------------------------------------------------------- Biwi
@@ -804,6 +835,7 @@ def read_tum_rgbd(folder: PathLike, *,
     order = np.argsort(t_rgb[ia], kind="stable")  # in time order, however rgb.txt lists them
     ia, ib = ia[order], ib[order]
     first = _color(folder / rgb_names[ia[0]])
+    _check_first_depth(folder / dep_names[ib[0]])
     if intrinsics is None:
         intrinsics = _guess_tum_intrinsics(folder, first.shape[:2])
     elif not isinstance(intrinsics, CameraIntrinsics):
@@ -941,6 +973,7 @@ def read_slambook(folder: PathLike, *, intrinsics: CameraIntrinsics | Sequence[f
             raise RGBDFormatError(folder, f"no depth image for {c.name} (depth/{c.stem}.pgm|png)")
         pairs.append((c, d))
     first = _color(colors[0])
+    _check_first_depth(pairs[0][1])
     if not isinstance(intrinsics, CameraIntrinsics):
         intrinsics = CameraIntrinsics(*[float(v) for v in intrinsics], width=first.shape[1],
                                       height=first.shape[0])
