@@ -151,11 +151,22 @@ def test_bad_input_gives_clear_error(tmp_path, capsys):
     assert "error" in capsys.readouterr().err
 
 
-def test_help_texts():
-    for cmd in [[], ["demo"], ["evaluate"], ["smooth"], ["demo-curve"], ["tune"], ["track-rgbd"]]:
-        res = subprocess.run([sys.executable, "-m", "phjax", *cmd, "--help"], capture_output=True,
-                             text=True, cwd=REPO)
-        assert res.returncode == 0 and "usage" in res.stdout
+def test_help_texts(capsys):
+    """``--help`` of phjax and of every command (in-process: the commands the parser holds, so
+    a new command is covered), and once through ``python -m phjax`` in a subprocess."""
+    from phjax.cli._main import build_parser
+
+    commands = sorted(build_parser().commands)
+    assert {"demo", "evaluate", "smooth", "demo-curve", "tune", "track-rgbd", "head-pose",
+            "live"} <= set(commands)
+    for cmd in [[], *([c] for c in commands)]:
+        assert main([*cmd, "--help"]) == 0, cmd
+        out = capsys.readouterr().out
+        assert out.startswith("usage: phjax"), cmd
+        assert cmd == [] or f"phjax {cmd[0]}" in out.splitlines()[0]
+    res = subprocess.run([sys.executable, "-m", "phjax", "--help"], capture_output=True,
+                         text=True, cwd=REPO, check=False)
+    assert res.returncode == 0 and res.stdout.startswith("usage: phjax") and not res.stderr
 
 
 def test_version_names_phjax_and_jax(capsys):
