@@ -219,10 +219,14 @@ def tuned_imm(kp, kr) -> IMMConfig:
                      log_switch_rate=math.log(math.sqrt(rp * rr)))
 
 
-def measure(data, L: float, train: list[int], log=print, small: bool = False) -> dict:
+def measure(data, L: float, train: list[int], log=print, small: bool = False,
+            options: dict | None = None) -> dict:
     """Every method's sweep at lookahead ``L``, its tuned knob and the stream's operating
-    point (``small``: thinned grids, for smoke runs). Returns ``dict(runs={(method, knob):
-    rows}, tuned={method: (pos knob, rot knob)}, hold=rows, stream_config=TrackerConfig)``."""
+    point (``small``: thinned grids, for smoke runs; ``options``: ``TrackerConfig`` fields of
+    the swept stream, e.g. ``{"reacquire": True}``; the shipped default's row keeps none).
+    Returns ``dict(runs={(method, knob): rows}, tuned={method: (pos knob, rot knob)},
+    hold=rows, stream_config=TrackerConfig)``."""
+    options = options or {}
     t0 = time.time()
     hold = run(data, baselines.hold, L)
     runs, tuned = {}, {}
@@ -236,7 +240,7 @@ def measure(data, L: float, train: list[int], log=print, small: bool = False) ->
     kf = tuned["kalman-cv extrapolation"]
     kf_cfg = KalmanConfig(pos_process_noise=0.03 * kf[0], rot_process_noise=0.3 * kf[1])
     kf_p, kf_r = runs[("kalman-cv extrapolation", kf[0])], runs[("kalman-cv extrapolation", kf[1])]
-    base = TrackerConfig(kalman=kf_cfg, imm=tuned_imm(*tuned[IMM]), lookahead=L)
+    base = TrackerConfig(kalman=kf_cfg, imm=tuned_imm(*tuned[IMM]), lookahead=L, **options)
     horizons = _thin(HORIZONS, small)
     for h in horizons:
         cfg = dataclasses.replace(base, horizon=h)  # every other field kept
@@ -248,8 +252,7 @@ def measure(data, L: float, train: list[int], log=print, small: bool = False) ->
     tuned[DEFAULT] = (d.horizon, d.horizon)
     log(f"L = {1e3 * L:g} ms: phjax stream horizon {h} ({time.time() - t0:.0f} s)")
     return dict(runs=runs, tuned=tuned, hold=hold,
-                stream_config=TrackerConfig(kalman=base.kalman, imm=base.imm, lookahead=L,
-                                            horizon=h))
+                stream_config=dataclasses.replace(base, horizon=h))
 
 
 # ---------------------------------------------------------------------------------- analysis
@@ -529,6 +532,10 @@ def main(argv=None):
                     help="offset of the render clock from the camera clock, in render periods "
                     "(0: aligned, render samples at a frame's instant see it; 0.5: halfway "
                     "between, as with independent clocks on average)")
+    ap.add_argument("--stream-option", action="append", default=[], metavar="FIELD=VALUE",
+                    help="a TrackerConfig field of the swept phjax stream (repeatable; JSON "
+                    "values), e.g. reacquire=true or noise_window=60: the options measured on "
+                    "the same split as the default (the 'as shipped' row keeps the defaults)")
     src = ap.add_mutually_exclusive_group()
     src.add_argument("--data", type=Path, default=None,
                      help="a folder laid out like ../shared/data (default: ../shared/data)")
@@ -544,6 +551,19 @@ def main(argv=None):
     if not 0 <= args.render_phase < 1:
         ap.error("--render-phase must lie in [0, 1) render periods")
     out = Path(args.out)
+    options = {}
+    for item in args.stream_option:
+        field, sep, value = item.partition("=")
+        if not sep or field not in {f.name for f in dataclasses.fields(TrackerConfig)}:
+            ap.error(f"--stream-option {item!r}: expected FIELD=VALUE with a TrackerConfig field")
+        try:
+            options[field] = json.loads(value)
+        except json.JSONDecodeError:
+            ap.error(f"--stream-option {item!r}: VALUE must be JSON (true, 60, 0.5)")
+    try:  # the configuration's own checks (noise_window=-1), before any work
+        TrackerConfig(**options)
+    except (TypeError, ValueError) as e:
+        ap.error(f"--stream-option: {e}")
     t0 = time.time()
     if args.report_only:
         if not (out / "results.pkl").is_file():
@@ -590,7 +610,8 @@ def main(argv=None):
             if any(has) and not any(has[i] for i in splits["test"]):
                 print(f"note: no test recording has {part}: the test split's {part} columns "
                       "are '-'", flush=True)
-        results = {L: measure(data, L, train, small=args.smoke) for L in lookaheads}
+        results = {L: measure(data, L, train, small=args.smoke, options=options)
+                   for L in lookaheads}
         wall = time.time() - t0
         out.mkdir(parents=True, exist_ok=True)
         with open(out / "results.pkl", "wb") as fh:  # the scores, for --report-only
@@ -598,6 +619,9 @@ def main(argv=None):
                          "results": results, "wall": wall, "seconds": args.seconds,
                          "render_phase": args.render_phase}, fh)
     text, _ = report(data, results, names, train, splits, args.seconds, wall, args.render_phase)
+    if options:
+        text = (f"Swept stream with {', '.join(f'{k}={v!r}' for k, v in options.items())} "
+                "(--stream-option).\n\n" + text)
     (out / "display_frontier.md").write_text(text)
     print(text)
     write_csv(out / "display_frontier.csv", data, results, train)

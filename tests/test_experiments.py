@@ -581,3 +581,36 @@ def test_horizon_rule_ignores_a_channel_no_recording_measures():
     none = {h: [dict(r[0], jr=1.0)] for h, r in rows.items()}  # no horizon meets the rule
     assert frontier.horizon_rule(none.get, sorted(rows), kf, kf, hold, [0], said.append) == 0.125
     assert len(said) == 1 and "taking the longest" in said[0]
+
+
+def test_display_frontier_stream_options_reach_the_swept_stream(tmp_path, monkeypatch, capsys):
+    """``--stream-option FIELD=VALUE`` (JSON values) are TrackerConfig fields of the swept
+    stream; an unknown field or a value that is not JSON is one line and exit 2, before any
+    work."""
+    import display_frontier as dfr
+
+    xyz = str(shared_path("tum_rgbd_groundtruth", "fr1_xyz-groundtruth.txt"))
+    desk = str(shared_path("tum_rgbd_groundtruth", "fr1_desk-groundtruth.txt"))
+    for bad, message in (("horizonn=0.03", "a TrackerConfig field"),
+                         ("reacquire", "a TrackerConfig field"),
+                         ("noise_window=sixty", "VALUE must be JSON"),
+                         ("noise_window=-3", "noise_window must be an integer")):
+        with pytest.raises(SystemExit) as stop:
+            dfr.main(["--smoke", "--stream-option", bad, "--recordings", xyz, desk])
+        assert stop.value.code == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert message in err[-1] and bad.split("=")[0] in err[-1], err
+    seen = []
+
+    class Measured(Exception):
+        pass
+
+    def measure(data, L, train, log=print, small=False, options=None):
+        seen.append(options)
+        raise Measured
+
+    monkeypatch.setattr(dfr, "measure", measure)
+    with pytest.raises(Measured):
+        dfr.main(["--smoke", "--out", str(tmp_path / "o"), "--stream-option", "reacquire=true",
+                  "--stream-option", "noise_window=60", "--recordings", xyz, desk])
+    assert seen == [{"reacquire": True, "noise_window": 60}]
