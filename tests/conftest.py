@@ -274,3 +274,43 @@ def mapping_count() -> int:
         return 0
     with maps.open("rb") as f:
         return sum(1 for _ in f)
+
+
+def run_cli(capsys, argv) -> tuple[int, str, str]:
+    """``phjax`` (in-process ``phjax.cli.main``) on ``argv``: ``(exit status, stdout,
+    stderr)``. ``main`` returns its status; a ``SystemExit`` is taken as the status too."""
+    from phjax.cli import main
+
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as stop:
+        rc = stop.code
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def assert_one_line_error(rc, out, err, *parts) -> None:
+    """Exit status 2 and one line ``phjax ...: error: ...`` on stderr holding every one of
+    ``parts``, and no traceback anywhere."""
+    assert rc == 2, (rc, out, err)
+    lines = err.strip("\n").split("\n")
+    assert len(lines) == 1, err
+    assert lines[0].startswith("phjax") and ": error: " in lines[0], err
+    assert "Traceback" not in out + err
+    for part in parts:
+        assert part in lines[0], (part, err)
+
+
+def assert_central_differences(f, x, grad, indices, h: float = 1e-6, rtol: float = 1e-6) -> None:
+    """``grad`` (the gradient of the scalar ``f`` at the array ``x``) at each index of
+    ``indices`` against the central difference ``(f(x + h e) - f(x - h e)) / 2h``, within
+    ``rtol * (1 + |difference|)``."""
+    import numpy as np
+
+    x = np.asarray(x, float)
+    for idx in indices:
+        a, b = x.copy(), x.copy()
+        a[idx] += h
+        b[idx] -= h
+        fd = (float(f(jax.numpy.asarray(a))) - float(f(jax.numpy.asarray(b)))) / (2 * h)
+        assert abs(grad[idx] - fd) <= rtol * (1 + abs(fd)), (idx, grad[idx], fd)

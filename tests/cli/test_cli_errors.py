@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import assert_one_line_error, run_cli
+
 from phjax.cli import main
 
 TUM_ROW = "1.0 0 0 0 0 0 0 1\n"
@@ -39,25 +41,6 @@ READERS = {
 }
 
 
-def _run(capsys, argv):
-    try:
-        rc = main(argv)
-    except SystemExit as stop:  # not expected (main returns), but a usage error may exit
-        rc = stop.code
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def _assert_one_line_error(rc, out, err, *parts):
-    assert rc == 2, (rc, out, err)
-    lines = err.strip("\n").split("\n")
-    assert len(lines) == 1, err
-    assert lines[0].startswith("phjax") and ": error: " in lines[0], err
-    assert "Traceback" not in out + err
-    for part in parts:
-        assert part in lines[0], (part, err)
-
-
 def _materialise(tmp_path, argv, content):
     path = tmp_path / "input.txt"
     if content == "DIR":
@@ -76,8 +59,8 @@ def _materialise(tmp_path, argv, content):
 def test_bad_input_file_gives_one_line_and_status_2(tmp_path, capsys, command, name, content,
                                                     message):
     argv, path, out = _materialise(tmp_path, READERS[command], content)
-    rc, stdout, err = _run(capsys, argv)
-    _assert_one_line_error(rc, stdout, err, str(path), message, f"phjax {command}: error:")
+    rc, stdout, err = run_cli(capsys, argv)
+    assert_one_line_error(rc, stdout, err, str(path), message, f"phjax {command}: error:")
     assert not any(out.parent.glob(out.name + "*")), "no output for bad input"
 
 
@@ -183,9 +166,9 @@ def test_config_file_values_are_checked(tmp_path, capsys, field, value, message)
     d["tracker"][field] = value
     cfg = tmp_path / "c.json"
     cfg.write_text(json.dumps(d))
-    rc, stdout, err = _run(capsys, ["smooth", str(good), "-o", str(tmp_path / "out.txt"),
+    rc, stdout, err = run_cli(capsys, ["smooth", str(good), "-o", str(tmp_path / "out.txt"),
                                     "--config", str(cfg)])
-    _assert_one_line_error(rc, stdout, err, message)
+    assert_one_line_error(rc, stdout, err, message)
     assert not (tmp_path / "out.txt").exists()
 
 
@@ -203,8 +186,8 @@ def test_bad_arguments_give_one_line_and_status_2(tmp_path, capsys, argv, messag
     out = tmp_path / "result"
     argv = [a.replace("FILE", str(good)).replace("OUT", str(out))
             .replace("NOFOLDER", str(tmp_path / "no_such_folder")) for a in argv]
-    rc, stdout, err = _run(capsys, argv)
-    _assert_one_line_error(rc, stdout, err, message.replace("NOFOLDER",
+    rc, stdout, err = run_cli(capsys, argv)
+    assert_one_line_error(rc, stdout, err, message.replace("NOFOLDER",
                                                             str(tmp_path / "no_such_folder")))
     assert not any(tmp_path.glob("result*"))
 
@@ -215,7 +198,7 @@ def test_a_noise_floor_over_too_few_poses_keeps_the_configured_noise(tmp_path, c
     (``auto``, which has nothing else to use, still fails: BAD_ARGUMENTS)."""
     good = tmp_path / "good.txt"
     good.write_text(TUM_ROW + "2.0 0 0 0 0 0 0 1\n")
-    rc, out, err = _run(capsys, ["smooth", str(good), "-o", str(tmp_path / "out.txt"),
+    rc, out, err = run_cli(capsys, ["smooth", str(good), "-o", str(tmp_path / "out.txt"),
                                  "--measurement-noise", "floor"])
     assert rc == 0, err
     assert "measurement noise: the configured (" in out + err
@@ -229,7 +212,7 @@ def test_a_long_gap_is_named(tmp_path, capsys):
     t = np.r_[np.arange(35) / 30, 61 + np.arange(35) / 30]
     f.write_text("".join(f"{x:.6f} {0.01 * k} 0 0 0 0 0 1\n" for k, x in enumerate(t)))
     # 70 poses and 500 rows: the size classes (one compiled program) of the one-part tests
-    rc, out, err = _run(capsys, ["smooth", str(f), "-o", str(tmp_path / "out.txt"),
+    rc, out, err = run_cli(capsys, ["smooth", str(f), "-o", str(tmp_path / "out.txt"),
                                  "--rate", "8"])
     assert rc == 0, err
     lines = [ln for ln in err.splitlines() if ln.startswith("phjax: warning:")]
@@ -244,8 +227,8 @@ def test_an_output_naming_the_input_leaves_it_unchanged(tmp_path, capsys):
     before = good.read_bytes()
     for argv in (["smooth", str(good), "-o", str(good)],
                  ["smooth", f"{good}", "-o", str(tmp_path / "." / "good.txt")]):
-        rc, stdout, err = _run(capsys, argv)
-        _assert_one_line_error(rc, stdout, err, "is the input")
+        rc, stdout, err = run_cli(capsys, argv)
+        assert_one_line_error(rc, stdout, err, "is the input")
     assert good.read_bytes() == before
 
 
@@ -275,8 +258,8 @@ def test_measurements_never_holding_a_whole_pose_are_refused(tmp_path, capsys):
     for argv in (["smooth", str(f), "-o", str(out)],
                  ["tune", str(f), "--measured", str(f), "--lambda", "1",
                   "-o", str(tmp_path / "c.json")]):
-        rc, stdout, err = _run(capsys, argv)
-        _assert_one_line_error(rc, stdout, err, str(f), "no row holds both a position and an "
+        rc, stdout, err = run_cli(capsys, argv)
+        assert_one_line_error(rc, stdout, err, str(f), "no row holds both a position and an "
                                "orientation (60 position-only, 60 orientation-only rows)")
     assert not out.exists()
 
@@ -284,15 +267,15 @@ def test_measurements_never_holding_a_whole_pose_are_refused(tmp_path, capsys):
 def test_one_part_rows_before_the_first_whole_pose_are_named(tmp_path, capsys):
     f = tmp_path / "late.txt"
     f.write_text(_one_part_rows(leading=45))
-    rc, stdout, err = _run(capsys, ["smooth", str(f), "-o", str(tmp_path / "out.txt")])
+    rc, stdout, err = run_cli(capsys, ["smooth", str(f), "-o", str(tmp_path / "out.txt")])
     assert rc == 0, err
     assert "45 one-part measurement(s) before the first whole pose" in err
     assert "1.5 s after the first measurement" in err
 
 
 def test_demo_curve_reads_the_named_file_without_synthetic_fallback(tmp_path, capsys):
-    rc, out, err = _run(capsys, ["demo-curve", str(tmp_path / "nope.txt")])
-    _assert_one_line_error(rc, out, err, "nope.txt: No such file or directory")
+    rc, out, err = run_cli(capsys, ["demo-curve", str(tmp_path / "nope.txt")])
+    assert_one_line_error(rc, out, err, "nope.txt: No such file or directory")
     assert "synthetic" not in out
 
 
@@ -336,8 +319,8 @@ def test_work_that_cannot_fit_in_memory_says_so_before_it_starts(tmp_path, capsy
     src.write_text("".join(f"{0.1 * k} {0.01 * k} 0 0 0 0 0 1\n" for k in range(300)))  # 29.9 s
     argv = [str(src) if a == "FILE" else str(tmp_path / a) if a.startswith("OUT") else a
             for a in argv]
-    rc, out, err = _run(capsys, argv)
-    _assert_one_line_error(rc, out, err, names, "GiB of memory", "24 GiB")
+    rc, out, err = run_cli(capsys, argv)
+    assert_one_line_error(rc, out, err, names, "GiB of memory", "24 GiB")
     assert not (tmp_path / "OUT.txt").exists()
 
 
@@ -359,14 +342,14 @@ def test_several_trajectory_files_are_named_file_hash_name(tmp_path, capsys):
 
     cwi = shared_path("vr_cwi_6dof_navigation", "H1_longdress_nav.csv")
     out = tmp_path / "out.txt"
-    rc, stdout, err = _run(capsys, ["smooth", f"{cwi}#P03_V1", "-o", str(out), "--offline"])
+    rc, stdout, err = run_cli(capsys, ["smooth", f"{cwi}#P03_V1", "-o", str(out), "--offline"])
     assert rc == 0 and out.exists(), err
     for spec, part in ((str(cwi), "holding 27 trajectories; name one as FILE#NAME, NAME one of: "
                         "P01_V1"), (f"{cwi}#P99", "no trajectory named 'P99'"),
                        (f"{shared_path('tum_rgbd_groundtruth', 'fr1_xyz-groundtruth.txt')}#a",
                         "FILE#NAME selects one of several trajectories")):
-        rc, stdout, err = _run(capsys, ["smooth", spec, "-o", str(tmp_path / "x.txt")])
-        _assert_one_line_error(rc, stdout, err, part, "phjax smooth: error:")
+        rc, stdout, err = run_cli(capsys, ["smooth", spec, "-o", str(tmp_path / "x.txt")])
+        assert_one_line_error(rc, stdout, err, part, "phjax smooth: error:")
 
 
 @pytest.mark.parametrize("command", ["evaluate", "demo"])
@@ -375,9 +358,9 @@ def test_a_recording_too_short_to_score_is_one_line(tmp_path, capsys, command):
     in an IndexError traceback, and 40 ms in a NaN-to-int error after a plot was written."""
     src = tmp_path / "short.txt"
     src.write_text("".join(f"{0.01 * k:.2f} {0.001 * k} 0 0 0 0 0 1\n" for k in range(5)))
-    rc, out, err = _run(capsys, [command, str(src), "--plot", str(tmp_path / "p.png"),
+    rc, out, err = run_cli(capsys, [command, str(src), "--plot", str(tmp_path / "p.png"),
                                  "--no-progress"])
-    _assert_one_line_error(rc, out, err, f"{src}: the recording is too short to evaluate",
+    assert_one_line_error(rc, out, err, f"{src}: the recording is too short to evaluate",
                            "jerk and lag need 8")
     assert not (tmp_path / "p.png").exists()
 
@@ -390,7 +373,7 @@ def test_a_still_noise_free_head_evaluates_and_a_plot_name_gets_png(tmp_path, ca
     evaluate tests, whose compiled programs it shares.)"""
     src = tmp_path / "still.txt"
     src.write_text("".join(f"{0.01 * k:.2f} 1 2 3 0 0 0 1\n" for k in range(500)))
-    rc, out, err = _run(capsys, ["evaluate", str(src), "--sigma-p", "0", "--sigma-r", "0",
+    rc, out, err = run_cli(capsys, ["evaluate", str(src), "--sigma-p", "0", "--sigma-r", "0",
                                  "--dropout", "0", "--plot", str(tmp_path / "fig"),
                                  "--no-progress"])
     assert rc == 0, err

@@ -11,7 +11,7 @@ import threading
 import numpy as np
 import pytest
 
-from phjax.cli import main
+from conftest import assert_one_line_error, run_cli
 
 
 @pytest.fixture(autouse=True)
@@ -22,25 +22,6 @@ def _jax_dispatch():
     old = jax.config.read("jax_cpu_enable_async_dispatch")
     yield
     jax.config.update("jax_cpu_enable_async_dispatch", old)
-
-
-def _run(capsys, argv):
-    try:
-        rc = main([str(a) for a in argv])
-    except SystemExit as stop:  # not expected (main returns)
-        rc = stop.code
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def _assert_one_line_error(rc, out, err, *parts):
-    assert rc == 2, (rc, out, err)
-    lines = err.strip("\n").split("\n")
-    assert len(lines) == 1, err
-    assert lines[0].startswith("phjax") and ": error: " in lines[0], err
-    assert "Traceback" not in out + err
-    for part in parts:
-        assert part in lines[0], (part, err)
 
 
 def _tum(path, positions):
@@ -83,9 +64,9 @@ def test_negative_measurement_noise_gives_the_options_own_error(tmp_path, capsys
                                                                  value):
     good = _tum(tmp_path / "in.tum", _head(3))
     source = good if command == "smooth" else "synthetic:2"
-    rc, out, err = _run(capsys, [command, source, "-o", tmp_path / "out.tum",
+    rc, out, err = run_cli(capsys, [command, source, "-o", tmp_path / "out.tum",
                                  "--measurement-noise", value])
-    _assert_one_line_error(rc, out, err, f"phjax {command}: error: argument "
+    assert_one_line_error(rc, out, err, f"phjax {command}: error: argument "
                            f"--measurement-noise: stds must be positive and finite, got "
                            f"'{value}'")
     assert not (tmp_path / "out.tum").exists()
@@ -94,8 +75,8 @@ def test_negative_measurement_noise_gives_the_options_own_error(tmp_path, capsys
 def test_real_options_still_read_as_options(tmp_path, capsys):
     """A word starting with '-' and a letter is still an option: an unknown one is named."""
     good = _tum(tmp_path / "in.tum", _head(3))
-    rc, out, err = _run(capsys, ["smooth", good, "-o", tmp_path / "o.tum", "-x5"])
-    _assert_one_line_error(rc, out, err, "unrecognized arguments: -x5")
+    rc, out, err = run_cli(capsys, ["smooth", good, "-o", tmp_path / "o.tum", "-x5"])
+    assert_one_line_error(rc, out, err, "unrecognized arguments: -x5")
 
 
 # ------------------------------------------------------- 2: poses:FILE of absurd values
@@ -107,8 +88,8 @@ def test_a_pose_file_of_absurd_positions_is_refused_in_one_line(tmp_path, capsys
     in one line (the reader's unit warning, which it repeated, is left out)."""
     poses = _tum(tmp_path / "big.tum", _head() + [scale, 0, 0])
     log = tmp_path / "sent.tum"
-    rc, out, err = _run(capsys, ["live", f"poses:{poses}", "--duration", "0.5", "--log", log])
-    _assert_one_line_error(rc, out, err, "phjax live: error: ", str(poses),
+    rc, out, err = run_cli(capsys, ["live", f"poses:{poses}", "--duration", "0.5", "--log", log])
+    assert_one_line_error(rc, out, err, "phjax live: error: ", str(poses),
                            "60 of 60 rows hold a position beyond +-10 m", "0 usable pose(s)")
     assert not log.exists()
 
@@ -116,8 +97,8 @@ def test_a_pose_file_of_absurd_positions_is_refused_in_one_line(tmp_path, capsys
 def test_a_pose_file_of_lost_frames_only_is_refused(tmp_path, capsys):
     poses = tmp_path / "lost.tum"
     poses.write_text("".join(f"{i / 30} nan nan nan nan nan nan nan\n" for i in range(5)))
-    rc, out, err = _run(capsys, ["live", f"poses:{poses}", "--duration", "0.5"])
-    _assert_one_line_error(rc, out, err, str(poses), "5 lost frame(s)", "0 usable pose(s)")
+    rc, out, err = run_cli(capsys, ["live", f"poses:{poses}", "--duration", "0.5"])
+    assert_one_line_error(rc, out, err, str(poses), "5 lost frame(s)", "0 usable pose(s)")
 
 
 class _Clock:
@@ -180,7 +161,7 @@ def test_live_names_the_dropped_rows_at_the_start(tmp_path, capsys, monkeypatch)
     p = _head()
     p[5, 2] = -1e150
     poses = _tum(tmp_path / "some.tum", p)
-    rc, out, err = _run(capsys, ["live", f"poses:{poses}", "--quiet"])
+    rc, out, err = run_cli(capsys, ["live", f"poses:{poses}", "--quiet"])
     assert rc == 0, err
     lines = err.strip().splitlines()
     assert lines[0].startswith(f"phjax live: poses {poses} -> none"), err
@@ -244,8 +225,8 @@ def test_an_8_bit_depth_folder_is_refused_when_opened(tmp_path, layout):
 
 def test_track_rgbd_names_the_8_bit_depth_file(tmp_path, capsys):
     folder = _pairs(tmp_path / "eight", np.uint8)
-    rc, out, err = _run(capsys, ["track-rgbd", folder, "-o", tmp_path / "o.tum"])
-    _assert_one_line_error(rc, out, err, "phjax track-rgbd: error: ",
+    rc, out, err = run_cli(capsys, ["track-rgbd", folder, "-o", tmp_path / "o.tum"])
+    assert_one_line_error(rc, out, err, "phjax track-rgbd: error: ",
                            str(folder / "depth" / "1.png"), "depth must be 16-bit")
 
 
@@ -259,9 +240,9 @@ def test_track_rgbd_names_the_8_bit_depth_file(tmp_path, capsys):
 ])
 def test_bad_intrinsics_are_refused_when_parsed(tmp_path, capsys, value, message):
     folder = _pairs(tmp_path / "rgbd")
-    rc, out, err = _run(capsys, ["track-rgbd", folder, "-o", tmp_path / "o.tum",
+    rc, out, err = run_cli(capsys, ["track-rgbd", folder, "-o", tmp_path / "o.tum",
                                  "--intrinsics", value])
-    _assert_one_line_error(rc, out, err, "argument --intrinsics: " + message)
+    assert_one_line_error(rc, out, err, "argument --intrinsics: " + message)
 
 
 @pytest.mark.parametrize("layout", ["pairs", "tum"])
@@ -271,9 +252,9 @@ def test_a_principal_point_outside_the_first_image_is_refused(tmp_path, capsys, 
                                                               centre):
     """A centre for another resolution (320,240 for 64 x 48 images) gave garbage poses."""
     folder = (_pairs if layout == "pairs" else _tum_rgbd)(tmp_path / "rgbd")
-    rc, out, err = _run(capsys, ["track-rgbd", folder, "-o", tmp_path / "o.tum",
+    rc, out, err = run_cli(capsys, ["track-rgbd", folder, "-o", tmp_path / "o.tum",
                                  "--intrinsics", value])
-    _assert_one_line_error(rc, out, err, f"phjax track-rgbd: error: --intrinsics {value}: the "
+    assert_one_line_error(rc, out, err, f"phjax track-rgbd: error: --intrinsics {value}: the "
                            f"principal point ({centre}) lies outside the 64 x 48 images of "
                            f"{folder} (CX 0-63, CY 0-47 pixels)")
     assert not (tmp_path / "o.tum").exists()
