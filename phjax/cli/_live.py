@@ -16,7 +16,9 @@ from ._common import (
     add_format_argument,
     check_lookahead,
     file_name,
+    finish_background_compilations,
     float_between,
+    hold_signals,
     nonnegative_int,
     overwritten_input,
     positive_float,
@@ -57,34 +59,6 @@ def _abandon(lt, source) -> None:
             source.close()
     except Exception:  # noqa: BLE001 - best effort on the way out; the first error is reported
         pass
-
-
-def _finish_compilations() -> None:
-    """Wait for the tracker's background compilation (a few seconds of one core after an
-    early stop) with Ctrl-C and SIGTERM held off: the interpreter waits for it at exit in any
-    case, and a second Ctrl-C in that wait aborted the process from inside XLA (``terminate
-    called``). A signal in the wait says what is happening, once."""
-    from .._jit import background_compilations
-
-    threads = background_compilations()
-    if not threads or threading.current_thread() is not threading.main_thread():
-        return
-    said = False
-
-    def hold(signum, frame):
-        nonlocal said
-        if not said:
-            print("phjax live: finishing a background compilation, a few seconds",
-                  file=sys.stderr, flush=True)
-            said = True
-
-    held = {sig: signal.signal(sig, hold) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        for th in threads:
-            th.join()
-    finally:
-        for sig, handler in held.items():
-            signal.signal(sig, handler)
 
 
 def noise_window(text: str) -> int:
@@ -182,13 +156,13 @@ def cmd_live(args) -> int:
         running = True
     except _Interrupted as e:
         _abandon(lt, source)
-        _finish_compilations()
+        finish_background_compilations("phjax live")
         restore()
         print(f"phjax live: stopped by {e} during the start; nothing was sent", file=sys.stderr)
         return 0
     except (ValueError, OSError) as e:  # SourceError and OutputError among them
         _abandon(lt, source)
-        _finish_compilations()
+        finish_background_compilations("phjax live")
         restore()
         print(f"phjax live: error: {e}", file=sys.stderr)
         return 2
@@ -217,10 +191,15 @@ def cmd_live(args) -> int:
         lt.stop(timeout=2.0)
     except Exception as e:  # noqa: BLE001 - a failing camera at run time
         print(f"\nphjax live: error: {e}", file=sys.stderr)
-        _finish_compilations()
+        finish_background_compilations("phjax live")
+        restore()
         return 1
     finally:
-        restore()
+        # the run is over: a Ctrl-C from now on (one sent at the summary line, as a user who
+        # sees it might) must not raise while the optimised program may still be compiling,
+        # or the interpreter's exit is interrupted in its wait for it (XLA aborts the
+        # process); held until the wait below, then the previous handlers come back
+        hold_signals("phjax live")
     if tty and not args.quiet:
         print(file=sys.stderr)
     s = lt.stats()
@@ -246,7 +225,8 @@ def cmd_live(args) -> int:
               + (f"{u['at_stop']} read as the run stopped, " if u["at_stop"] else "")
               + f"dropped {lt.source.dropped_text()}; {frame}",
               file=sys.stderr)
-    _finish_compilations()
+    finish_background_compilations("phjax live")
+    restore()
     return 0
 
 

@@ -28,6 +28,7 @@ from ._common import (
     Parser,
     add_format_argument,
     check_fits,
+    finish_background_compilations,
     format_user_error,
     positive_int,
     read_input,
@@ -265,6 +266,8 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         except KeyboardInterrupt:  # Ctrl-C: one line, the shell's status for SIGINT
             print(f"\nphjax {args.command}: interrupted", file=sys.stderr)
+            # before the interpreter's exit waits for them, where a second Ctrl-C aborts
+            finish_background_compilations(f"phjax {args.command}")
             return 130
         except (MemoryError, RuntimeError) as err:  # larger than this machine's memory
             if not isinstance(err, MemoryError) and "RESOURCE_EXHAUSTED" not in str(err):
