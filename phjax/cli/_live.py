@@ -136,10 +136,10 @@ def cmd_live(args) -> int:
         source = open_source(args.source, model_dir=args.model_dir, ipd=args.ipd, fov=args.fov,
                              monocular=args.monocular, head_size=args.head_size,
                              format=args.format)
-        if isinstance(source, PoseReplaySource) and source.out_of_range_text():
-            report(f"phjax live: warning: {args.source.removeprefix('poses:')}: "
-                   f"{source.out_of_range_text()}: replayed as lost frames (OUT_OF_RANGE in "
-                   "the status line)")
+        dropped = source.out_of_range_text() if isinstance(source, PoseReplaySource) else ""
+        if dropped:
+            report(f"phjax live: warning: {args.source.removeprefix('poses:')}: {dropped}: "
+                   "replayed as lost frames (OUT_OF_RANGE in the status line)")
         if isinstance(source, UdpSource):
             source.report = report  # from the capture thread
             source.open()  # a port in use fails now, not after the tracker's compilation
@@ -194,12 +194,14 @@ def cmd_live(args) -> int:
         finish_background_compilations("phjax live")
         restore()
         return 1
-    finally:
-        # the run is over: a Ctrl-C from now on (one sent at the summary line, as a user who
-        # sees it might) must not raise while the optimised program may still be compiling,
-        # or the interpreter's exit is interrupted in its wait for it (XLA aborts the
-        # process); held until the wait below, then the previous handlers come back
-        hold_signals("phjax live")
+    except BaseException:
+        restore()
+        raise
+    # the run is over: a Ctrl-C from now on (one sent at the summary line, as a user who sees
+    # it might) must not raise while the optimised program may still be compiling, or the
+    # interpreter's exit is interrupted in its wait for it (XLA aborts the process); held
+    # until the wait below, then the previous handlers come back
+    hold_signals("phjax live")
     if tty and not args.quiet:
         print(file=sys.stderr)
     s = lt.stats()

@@ -397,3 +397,30 @@ def test_reacquire_and_noise_window_options(tmp_path, capsys, monkeypatch):
         steps[reacquire] = np.abs(np.diff(sent[:, 0])).max()
     assert steps[True] > 0.25, steps  # one jump
     assert steps[False] < 0.1, steps  # a glide over several samples
+
+
+@pytest.mark.parametrize("fails", [True, False])
+def test_the_handlers_come_back_after_a_run_that_ends_or_fails(tmp_path, capsys, monkeypatch,
+                                                               fails):
+    """After the run Ctrl-C and SIGTERM are held (the optimised program may still be
+    compiling) and then put back, on the error path as well: there the holder was left
+    installed (installed in a ``finally`` that ran after the error's return), so a caller
+    of ``main`` in-process could no longer be stopped with Ctrl-C."""
+    import phjax.live as live
+
+    src = tmp_path / "p.txt"
+    write_tum(src, Trajectory(np.arange(60) / 30, np.zeros((60, 3)),
+                              np.tile([1.0, 0.0, 0.0, 0.0], (60, 1))))
+
+    def run(self, *args, **kwargs):
+        if fails:
+            raise RuntimeError("the camera was unplugged")
+
+    monkeypatch.setattr(live.LiveTracker, "start", lambda self: None)
+    monkeypatch.setattr(live.LiveTracker, "run", run)
+    before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    rc = main(["live", f"poses:{src}", "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == (1 if fails else 0), err
+    assert ("phjax live: error: the camera was unplugged" in err) == fails
+    assert {s: signal.getsignal(s) for s in before} == before
