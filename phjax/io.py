@@ -1,4 +1,4 @@
-"""Trajectory file I/O (NumPy, float64, outside ``jit``).
+r"""Trajectory file I/O (NumPy, float64, outside ``jit``).
 
 Every reader returns a :class:`Trajectory` (or a dict of them) holding **seconds**, **metres** and
 unit quaternions in phjax's **wxyz** (scalar-first, Hamilton) order, whatever the file uses. All
@@ -14,8 +14,10 @@ readers
 - normalise the quaternions and flip signs so that consecutive quaternions have non-negative dot
   products (``q`` and ``-q`` are the same rotation; interpolators need the continuous choice),
 - raise :class:`TrajectoryFormatError` (a ``ValueError``) for malformed input, naming the file,
-  the 1-based line number and what was wrong (column count, non-numeric token, non-finite time,
-  infinite value, zero-norm quaternion), and for empty, undetectable or non-text files.
+  the 1-based line number and what was wrong (column count, non-numeric token -- Python's digit
+  grouping ``1_000`` included --, non-finite time, infinite value, zero-norm quaternion), and
+  for empty, undetectable or non-text (not UTF-8) files. Lines end at ``\n``, ``\r\n`` or
+  ``\r`` (a form feed is whitespace, not a line break).
   A missing file or a directory raises the usual ``OSError`` (``FileNotFoundError``,
   ``IsADirectoryError``).
 
@@ -231,9 +233,12 @@ def _err(path: PathLike, line: int | None, what: str) -> TrajectoryFormatError:
 
 
 def _read_lines(path: PathLike) -> list[str]:
+    r"""The file's lines, broken at ``\n``, ``\r\n`` and ``\r`` only (``str.splitlines`` also
+    breaks at form feeds, ``\x1c``-``\x1e``, ``\x85`` and ``\u2028``, which would shift the line
+    numbers of the messages and split a row whose numbers a form feed separates)."""
     try:
-        with open(path, encoding="utf-8-sig") as f:
-            return f.read().splitlines()
+        with open(path, encoding="utf-8-sig") as f:  # universal newlines: \r\n, \r -> \n
+            return f.read().split("\n")
     except UnicodeDecodeError as e:
         raise _err(path, None, f"not a UTF-8 text file ({e.reason} at byte {e.start})") from None
 
@@ -267,13 +272,19 @@ def _float_table(
             )
     if not rows:
         raise _err(path, None, "no data lines")
-    try:
-        return np.array(rows, dtype=np.float64).reshape(len(rows), ncols)
-    except ValueError:
-        pass
+    # Python and NumPy read digit-group underscores ('1_5' is 15): no trajectory format writes
+    # numbers so, and such a token is a typo or a field joined by '_', so it is refused
+    underscores = any("_" in tok for r in rows for tok in r)
+    if not underscores:
+        try:
+            return np.array(rows, dtype=np.float64).reshape(len(rows), ncols)
+        except ValueError:
+            pass
     for ln, r in zip(linenos, rows):
         for j, tok in enumerate(r):
             try:
+                if "_" in tok:
+                    raise ValueError(tok)
                 float(tok)
             except ValueError:
                 col = file_columns[j] if file_columns else j + 1
@@ -860,15 +871,23 @@ def read_avtrack360(path: PathLike) -> dict[str, Trajectory]:
     Returns:
         ``{video filename: Trajectory}`` (orientation only, NaN positions), angles converted with
         :func:`avtrack360_euler_to_quaternion`; a ``NaN`` angle is a lost frame. Structural
-        errors are located by JSON path (syntax errors by line number).
+        errors are located by JSON path (syntax errors by line number); a file without videos
+        (``"data": []``) is an error.
     """
     try:
         with open(path, encoding="utf-8-sig") as f:
             doc = json.load(f)
     except json.JSONDecodeError as e:
         raise _err(path, e.lineno, f"invalid JSON: {e.msg}") from None
+    except UnicodeDecodeError as e:
+        raise _err(path, None, f"not a UTF-8 text file ({e.reason} at byte {e.start})") from None
+    except RecursionError:  # json's parser recurses once per [ or {
+        raise _err(path, None, "invalid JSON: nested too deeply") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("data"), list):
         raise _err(path, None, "expected a JSON object with a 'data' list")
+    if not doc["data"]:
+        raise _err(path, None, "no videos in 'data' (expected objects with a 'filename' and "
+                               "a 'pitch_yaw_roll_data_hmd' list)")
     out: dict[str, Trajectory] = {}
     for i, video in enumerate(doc["data"]):
         where = f"data[{i}]"
@@ -997,24 +1016,30 @@ def _is_number(tok: str) -> bool:
 
 
 def detect_format(path: PathLike) -> str:
-    """Guess a file's format from its first lines (and ``.json`` extension).
+    """Guess a file's format from its first lines (at least 20 non-blank ones and the first
+    that is not a ``#`` comment, however long the comment header) and ``.json`` extension.
 
     Returns one of ``"tum"``, ``"euroc"``, ``"csv"``, ``"corbillon"``, ``"hachaj"``, ``"cwi"``,
-    ``"avtrack360"``; raises :class:`TrajectoryFormatError` for an empty or non-text file or
+    ``"avtrack360"``; raises :class:`TrajectoryFormatError` for an empty, comments-only or non-text file or
     when nothing matches.
     """
-    head: list[str] = []
+    head: list[str] = []  # the first 20 non-blank lines, and on to the first non-# one
+    data = False  # whether head holds a line that is not a # comment
     try:
         with open(path, encoding="utf-8-sig") as f:
             for line in f:
-                if line.strip():
-                    head.append(line.strip())
-                if len(head) >= 20:
+                s = line.strip()
+                if s:
+                    head.append(s)
+                    data = data or not s.startswith("#")
+                if len(head) >= 20 and data:
                     break
     except UnicodeDecodeError as e:
         raise _err(path, None, f"not a UTF-8 text file ({e.reason} at byte {e.start})") from None
     if not head:
         raise _err(path, None, "empty file, cannot detect its format")
+    if not data:  # comments only: no format would read a row from it
+        raise _err(path, None, "no data lines (only # comments)")
     first = head[0]
     if Path(path).suffix.lower() == ".json" or first.startswith(("{", "[")):
         return "avtrack360"
@@ -1076,7 +1101,8 @@ def read_trajectory(path: PathLike, format: str = "auto", name: str | None = Non
             shown = ", ".join(names[:8]) + (f", ... ({len(names)} in all)" if len(names) > 8
                                             else "")
             what = (f"no trajectory named {name!r}" if name is not None
-                    else f"a {fmt} file holding {len(names)} trajectories")
+                    else f"{'an' if fmt == 'avtrack360' else 'a'} {fmt} file holding "
+                         f"{len(names)} trajectories")
             raise _err(path, None, f"{what}; pass name= one of: {shown}")
         for w in seen:  # the selected trajectory's warnings only
             if f"[{name}]" in str(w.message):

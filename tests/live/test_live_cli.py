@@ -144,8 +144,8 @@ def test_acceptance_synthetic_opentrack(listener, model_cache, tmp_path, cli_jax
     (["live", "poses:{cwi}#P99"], "no trajectory named 'P99'"),
     # named as a folder (was "pose file not found"); the option to pass is live's own
     (["live", "poses:{tmp}"], "a folder (poses:FILE takes a pose file)"),
-    (["live", "poses:{comment}"], "cannot detect the trajectory format from its first lines; "
-     "pass --format, one of"),
+    # comments only: said "cannot detect the format; pass --format", which only led to this
+    (["live", "poses:{comment}"], "comment.tum: no data lines (only # comments)"),
     (["live", "poses:{comment}", "--format", "tum"], "comment.tum: no data lines"),
     (["live", "UDP://127.0.0.1:0"], "port 0 out of range"),  # a URL scheme in any case
 ])
