@@ -1020,8 +1020,8 @@ def detect_format(path: PathLike) -> str:
     that is not a ``#`` comment, however long the comment header) and ``.json`` extension.
 
     Returns one of ``"tum"``, ``"euroc"``, ``"csv"``, ``"corbillon"``, ``"hachaj"``, ``"cwi"``,
-    ``"avtrack360"``; raises :class:`TrajectoryFormatError` for an empty, comments-only or non-text file or
-    when nothing matches.
+    ``"avtrack360"``; raises :class:`TrajectoryFormatError` for an empty, comments-only or
+    non-text file or when nothing matches.
     """
     head: list[str] = []  # the first 20 non-blank lines, and on to the first non-# one
     data = False  # whether head holds a line that is not a # comment
