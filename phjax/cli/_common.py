@@ -78,6 +78,10 @@ class Parser(argparse.ArgumentParser):
     commands: dict[str, argparse.ArgumentParser] = {}
 
     def _parse_optional(self, arg_string):
+        # argparse's private hook. From Python 3.11 to CPython's main branch (3.14, read on
+        # 2026-11-30) its one caller, _parse_known_args, takes None as "a positional word"
+        # (pattern 'A'); only the non-None return values changed between versions (a tuple,
+        # then a list of tuples), and those come from argparse itself.
         if _NEGATIVE_VALUE.match(arg_string):
             return None  # a positional word: the value of the option before it
         return super()._parse_optional(arg_string)
