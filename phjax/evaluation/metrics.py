@@ -410,6 +410,8 @@ def _max_jump(times, x, boundary_times, local=None) -> Metric:
     :func:`_one_sided` derivative at the window's sample nearest to ``b``."""
     t, x = _as64(times), _as64(x)
     _check_times(t, x.shape[0])
+    if t.shape[0] < 3:  # no three samples on a side (and no index to clip to when empty)
+        return _NAN
     left, right = _boundary_windows(t, _finite_rows(x), boundary_times)
     if left.shape[0] == 0:
         return _NAN
@@ -678,8 +680,10 @@ def shift_lag(
     overrides) for ``d`` on a grid of ``step`` from ``min_lag`` to ``max_lag`` (s). The error
     is the Euclidean distance (m) or the geodesic angle (deg). Every candidate is scored on the
     same samples: those finite in ``est`` whose shifted ground truth is finite for every ``d``.
-    The best grid value is refined by a parabola through its neighbours; at an end of the grid
-    the end is returned (the true lag may lie beyond it).
+    The best grid value is refined by a parabola through the mean squared errors at it and its
+    neighbours (near its minimum the MSE of a shifted copy is a parabola in ``d``, the RMSE a
+    V whose parabola leant up to 0.2 ms towards the grid point); at an end of the grid the end
+    is returned (the true lag may lie beyond it).
 
     The grid is searched coarse to fine (:func:`_grid_minimum`: every 5th shift, then the whole
     grid around the lowest of those, ~60 of the default grid's 201 shifts), which finds the
@@ -728,7 +732,7 @@ def shift_lag(
         return Lag(float("nan"), float(rmse[k]), count)  # the truth does not move: no lag
     lag = float(lags[k])
     if 0 < k < len(lags) - 1:
-        lag += _parabola_vertex(rmse[k - 1 : k + 2], maximum=False) * step
+        lag += _parabola_vertex(rmse[k - 1 : k + 2] ** 2, maximum=False) * step
     return Lag(lag, float(rmse[k]), count)
 
 

@@ -455,7 +455,8 @@ def test_shift_lag_of_a_hold_and_against_brute_force():
 def _full_grid_lag(t, est, gt, lags, kind):
     """Reference for :func:`metrics.shift_lag`: every shift of the grid scored, the ground truth
     interpolated by NumPy (positions) or scipy's ``Slerp`` (rotations); the same scored samples
-    (estimate finite, shifted truth finite at every shift) and parabola refinement."""
+    (estimate finite, shifted truth finite at every shift) and parabola refinement (through
+    the mean squared errors)."""
     from scipy.spatial.transform import Slerp
 
     s = t[None, :] - lags[:, None]  # (shifts, n)
@@ -476,7 +477,7 @@ def _full_grid_lag(t, est, gt, lags, kind):
     k = int(np.argmin(rmse))
     lag = lags[k]
     if 0 < k < lags.size - 1:
-        c = rmse[k - 1:k + 2]
+        c = rmse[k - 1:k + 2] ** 2  # the MSE's parabola
         den = c[0] - 2 * c[1] + c[2]
         lag += 0.5 * (c[0] - c[2]) / den * (lags[1] - lags[0]) if den > 0 else 0.0
     return lag, rmse[k], int(ok.sum())
