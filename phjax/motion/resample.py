@@ -165,7 +165,11 @@ def _interp_weights(times, valid, k, query, max_gap):
     ok = has_prev | has_next
     if max_gap is not None:
         inside = has_prev & has_next & (query > t0) & (query < t1)
-        ok = ok & ~(inside & (t1 - t0 > max_gap))
+        # invalid rows from the first sample time or up to the last one: a gap at that end,
+        # as long as those rows span (without one neighbour, t0 == t1 is the valid sample)
+        head = ~has_prev & (query >= times[0]) & (query < t1) & (t1 - times[0] > max_gap)
+        tail = ~has_next & (query > t0) & (query <= times[-1]) & (times[-1] - t0 > max_gap)
+        ok = ok & ~(inside & (t1 - t0 > max_gap)) & ~head & ~tail
     return i0, i1, s, ok
 
 
@@ -191,13 +195,16 @@ def interpolate_poses(
             channel only). Slerp takes the shortest arc, so ``q``/``-q`` flips are harmless.
         query_times: where to interpolate (any order).
         max_gap: optional maximum spacing (s) between the two valid samples bracketing a query;
-            a query strictly inside a longer gap gives NaN. Queries exactly at a valid sample
-            and queries outside the valid range are unaffected.
+            a query strictly inside a longer gap gives NaN. Invalid rows at the start or the
+            end of ``times`` are a gap too, as long as they span: a query among them gives NaN
+            when that is longer (ground truth whose tracking was lost before its last row is
+            not held there). Queries exactly at a valid sample and queries outside
+            ``[times[0], times[-1]]`` are unaffected.
 
     Returns:
         ``(positions (m, 3), quaternions (m, 4))``. Queries before the first / after the last
-        valid sample are clamped to that end pose (no extrapolation). A channel with no valid
-        sample at all gives NaN.
+        valid sample are clamped to that end pose (no extrapolation; with ``max_gap``, see
+        there). A channel with no valid sample at all gives NaN.
     """
     shapes = [np.shape(x) for x in (times, positions, quaternions, query_times)]
     n = shapes[0][0] if len(shapes[0]) == 1 else -1

@@ -234,3 +234,27 @@ def test_epoch_times_interpolate_as_relative_ones():
     rel = np.asarray(interpolate_poses(t, p, q, r)[0])
     epoch = np.asarray(interpolate_poses(t + 1.7e9, p, q, r + 1.7e9)[0])
     np.testing.assert_allclose(epoch, rel, atol=1e-5)
+
+
+def test_max_gap_counts_invalid_rows_at_either_end_as_a_gap():
+    """Ground truth whose tracking was lost before its last row (or found only after its
+    first): the evaluation scored render samples there against the held end pose. With
+    ``max_gap`` the invalid rows at an end are a gap as long as they span (NaN when longer,
+    held when shorter, as inside); queries outside ``[times[0], times[-1]]`` stay clamped."""
+    t = np.arange(10) * 0.1
+    p = np.stack([t, 2 * t, -t], -1)
+    q = _wxyz(Rotation.from_rotvec(np.outer(t, [0, 0, 1])))
+    p[8:] = np.nan  # positions lost for the last 0.2 s (0.7 .. 0.9)
+    q[:3] = 0.0  # orientations found at 0.3 s (zero rows are invalid)
+    query = np.array([0.0, 0.15, t[3], 0.5, t[7], 0.75, 0.9, -1.0, 2.0])
+    p_out, q_out = map(np.asarray, interpolate_poses(t, p, q, query, max_gap=0.15))
+    assert np.isnan(p_out[[5, 6]]).all() and np.isfinite(p_out[[0, 1, 2, 3, 4, 7, 8]]).all()
+    np.testing.assert_allclose(p_out[[4, 7, 8], 0], [0.7, 0.0, 0.7], atol=1e-12)
+    assert np.isnan(q_out[[0, 1]]).all() and np.isfinite(q_out[2:]).all()  # -1.0: clamped
+    # gaps shorter than max_gap at the ends are held, as before
+    p_out, q_out = map(np.asarray, interpolate_poses(t, p, q, query, max_gap=0.35))
+    np.testing.assert_allclose(p_out[[5, 6], 0], [0.7, 0.7], atol=1e-12)
+    assert np.isfinite(q_out).all()
+    # without max_gap every end is clamped
+    p_out, q_out = map(np.asarray, interpolate_poses(t, p, q, query))
+    assert np.isfinite(p_out).all() and np.isfinite(q_out).all()
