@@ -28,7 +28,11 @@ then roll (about its forward axis): with the user's forward, up and right axes `
 OSC
 ---
 One message per sample, address ``/phjax/pose``, eight float32 arguments
-``t, x, y, z, qw, qx, qy, qz`` (s, m, camera frame as above), sent with python-osc.
+``t, x, y, z, qw, qx, qy, qz`` (s, m, camera frame as above; the quaternion scaled to unit
+norm), sent with python-osc.
+
+Either output counts a pose it cannot send in ``out_of_range`` and sends nothing for it: a
+value beyond the format, a NaN, or a quaternion without an orientation (zero).
 
 Log
 ---
@@ -75,6 +79,17 @@ class OutputError(ValueError):
     """A bad output URL, an unresolvable host, a port that cannot be used."""
 
 
+def _unit(quaternion) -> np.ndarray:
+    """``quaternion`` (``(4,)``) scaled to unit norm; NaN when it has no orientation (zero or
+    not finite). The norm is ``math.hypot``'s: neither a tiny nor a huge quaternion (whose
+    squared norm leaves float64's range) becomes a division by zero or the identity."""
+    q = np.asarray(quaternion, np.float64)
+    n = math.hypot(*q.tolist())
+    if not (0.0 < n < math.inf):
+        return np.full(4, np.nan)
+    return q / n
+
+
 def opentrack_values(position, quaternion) -> np.ndarray:
     """``(x, y, z, yaw, pitch, roll)`` in opentrack's units and axes (see the module docs).
 
@@ -83,12 +98,11 @@ def opentrack_values(position, quaternion) -> np.ndarray:
         quaternion: ``(4,)`` camera-frame orientation ``wxyz`` (identity: facing the camera).
 
     Returns:
-        ``(6,)`` float64: cm and degrees.
+        ``(6,)`` float64: cm and degrees; the angles are NaN when ``quaternion`` has no
+        orientation (zero, or not finite).
     """
     p = np.asarray(position, np.float64)
-    w, x, y, z = (float(v) for v in np.asarray(quaternion, np.float64))
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    w, x, y, z = w / n, x / n, y / n, z / n
+    w, x, y, z = _unit(quaternion)
     # rotation matrix (camera frame)
     m = np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -170,7 +184,8 @@ class _UdpOutput(Output):
         self.sent = 0
         self.send_errors = 0
         #: poses not sent because a value does not fit the format (float32 OSC beyond 3.4e38,
-        #: opentrack's centimetres beyond float64): never sent as inf
+        #: opentrack's centimetres beyond float64) or is not a pose (NaN, a zero quaternion):
+        #: never sent as inf or NaN
         self.out_of_range = 0
 
     def _fits(self, values, dtype) -> bool:
@@ -228,7 +243,7 @@ class OscOutput(_UdpOutput):
         super().__init__(host, port, from_port, f"osc://{_url_host(host)}:{port}")
 
     def send(self, t, position, quaternion) -> None:
-        values = [t, *np.asarray(position, np.float64), *np.asarray(quaternion, np.float64)]
+        values = [t, *np.asarray(position, np.float64), *_unit(quaternion)]
         if not self._fits(values, np.float32):
             return
         b = self._builder(address=OSC_ADDRESS)

@@ -17,7 +17,10 @@ A datagram that is the wrong size, holds a NaN or an infinity, or a value beyond
 :data:`MAX_POSITION_CM` / :data:`MAX_ANGLE_DEG` is dropped and counted by reason, with one
 line saying what was wrong (at most one line per ``report_interval``); it never reaches the
 tracker. When several datagrams wait in the socket (the capture thread was busy), only the
-newest is used and the others are counted as ``superseded``: never a backlog.
+newest is used and the others are counted as ``superseded``: never a backlog, also when more
+wait than one wake-up reads (:data:`_MAX_DRAIN`): the pose read is held while the reading goes
+on, for at most :data:`_MAX_HOLD` (a sender faster than the reading still gives a measurement
+that often).
 
 Repeated poses. opentrack's pipeline sends a datagram every 4 ms (250 Hz) whatever its
 tracker's frame rate, repeating the last pose until the tracker delivers the next one (with
@@ -82,8 +85,13 @@ _FRAME_WINDOW = 15
 #: senders remembered (a new one is reported; a sender using a new port per datagram would
 #: otherwise grow the set without bound)
 _MAX_SENDERS = 64
-#: most datagrams read per wake-up of the read loop (the newest valid one is used)
+#: most datagrams read per wake-up of the read loop (the newest valid one is used; when
+#: more wait, it is held and the reading goes on, see :data:`_MAX_HOLD`)
 _MAX_DRAIN = 256
+#: longest time (s) a pose is held back while a backlog larger than :data:`_MAX_DRAIN` is read
+#: (the newest pose is then taken): bounds the gap between measurements when a sender sends
+#: faster than they can be read
+_MAX_HOLD = 0.1
 #: receive buffer: larger datagrams are truncated to this and reported as the wrong size
 _RECV_BYTES = 65536
 
@@ -268,37 +276,49 @@ class UdpSource(Source):
         if self.sock is None:
             self.open()
         sock = self.sock
-        while not stop.is_set():
-            try:
-                ready, _, _ = select.select([sock], [], [], self.poll)
-            except (OSError, ValueError):  # closed under us (stop timed out): end quietly
-                if stop.is_set() or self.sock is None:
-                    return
-                raise
-            if not ready:
-                continue
-            newest = self._drain(sock, clock, stop)
-            if newest is not None and stop.is_set():
-                self.at_stop += 1  # the run has ended: counted, not applied
-            elif newest is not None:
-                t, position, quaternion = newest
+        # a pose read while more datagrams waited (a backlog larger than _MAX_DRAIN): held, and
+        # replaced by a newer one, until the socket is empty or it was held _MAX_HOLD
+        held, held_since = None, None
+        try:
+            while not stop.is_set():
+                try:
+                    wait = 0.0 if held is not None else self.poll  # held: read on at once
+                    ready, _, _ = select.select([sock], [], [], wait)
+                except (OSError, ValueError):  # closed under us (stop timed out): end quietly
+                    if stop.is_set() or self.sock is None:
+                        return
+                    raise
+                more = False
+                if ready:
+                    held, more = self._drain(sock, clock, stop, held)
+                if held is None or stop.is_set():
+                    continue
+                if more:
+                    held_since = clock.now() if held_since is None else held_since
+                    if clock.now() - held_since < _MAX_HOLD:
+                        continue
+                t, position, quaternion = held
+                held, held_since = None, None
                 self.emitted += 1
                 emit(Measurement(t, position, quaternion))
+        finally:
+            if held is not None:
+                self.at_stop += 1  # the run has ended: counted, not applied
 
-    def _drain(self, sock, clock, stop):
-        """Read every waiting datagram (at most ``_MAX_DRAIN``); the newest valid one as
-        ``(t, position, quaternion)``, or None."""
-        newest = None
+    def _drain(self, sock, clock, stop, newest=None):
+        """Read the waiting datagrams (at most ``_MAX_DRAIN``): ``(newest, more)``, the newest
+        valid pose as ``(t, position, quaternion)`` (``newest`` when none is newer, None if
+        neither) and whether more datagrams may wait (the limit was reached)."""
         for _ in range(_MAX_DRAIN):
             try:
                 data, addr = sock.recvfrom(_RECV_BYTES)
             except (BlockingIOError, InterruptedError):
-                break
+                return newest, False
             except ConnectionResetError:  # Windows: an ICMP error of an earlier send
                 continue
             except OSError:
                 if stop.is_set() or self.sock is None:
-                    break
+                    return newest, False
                 raise
             t = clock.now()
             self.received += 1
@@ -320,7 +340,7 @@ class UdpSource(Source):
             if newest is not None:
                 self.superseded += 1
             newest = (t, *opentrack_pose(values))
-        return newest
+        return newest, True
 
     @property
     def frame_interval(self) -> float:
