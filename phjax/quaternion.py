@@ -91,7 +91,13 @@ def quat_inv(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
 
 @jit(inline=True)
 def quat_normalize(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
-    """``q / |q|``; the zero quaternion maps to the identity."""
+    """``q / |q|``; the zero quaternion maps to the identity.
+
+    ``|q|^2`` is formed directly: a quaternion whose norm squared leaves the dtype's range
+    (float32 ``|q| < 1e-19`` or ``> 1e19``; float64 ``1e-154``, ``1e154``) is not normalised
+    correctly. Rescaling by a power of two first would cost two more operations in every
+    normalisation of the tracker's hot path for inputs that no sensor gives.
+    """
     q = _quat(q)
     return safe_normalize(q, quat_identity(dtype=q.dtype))
 
@@ -169,11 +175,20 @@ def quat_from_matrix(m: Float[ArrayLike, "... 3 3"]) -> Float[Array, "... 4"]:
 
 @jit(inline=True)
 def quat_exp(v: Float[ArrayLike, "... 3"]) -> Float[Array, "... 4"]:
-    """Exponential of the pure quaternion ``v``: ``(cos|v|, sin|v| v/|v|)``."""
+    """Exponential of the pure quaternion ``v``: ``(cos|v|, sin|v| v/|v|)``.
+
+    Smooth at ``v = 0`` to second order: there ``cos|v|`` is its series in ``|v|^2`` (the
+    NaN-safe norm has gradient 0 at 0, through which the Hessian of ``cos|v|`` was 0, not ``-I``).
+    """
     v = _last(v, 3, "v")
-    n = safe_norm(v)
+    sq = dot_last(v, v)
+    n = safe_sqrt(sq)
     sinc = jnp.sinc(n / jnp.pi)  # sin(n)/n, smooth at 0
-    return jnp.concatenate([jnp.cos(n)[..., None], sinc[..., None] * v], axis=-1)
+    # cos n = 1 - n^2/2 + n^4/24 - ...: below |v|^2 = 1e-5 the next term is < 2e-18
+    small = sq < 1e-5
+    sq_s = jnp.where(small, sq, 0)
+    cos = jnp.where(small, 1 - sq_s / 2 * (1 - sq_s / 12), jnp.cos(n))
+    return jnp.concatenate([cos[..., None], sinc[..., None] * v], axis=-1)
 
 
 @jit(inline=True)
@@ -181,12 +196,14 @@ def quat_log(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 3"]:
     """Logarithm of a unit quaternion as a 3-vector ``theta * axis`` with ``theta = atan2(|v|, w)``.
 
     The result has norm in ``[0, pi]`` (half the rotation angle, up to the ``q``/``-q`` choice).
+    It is the same for every positive multiple of ``q`` (the vector part of the logarithm).
     """
     w, v = _split(q)
     n = safe_norm(v)
     theta = safe_atan2(n, w)
-    # theta / n -> (1 - n^2 / (3 w^2)) / w as n -> 0 with w > 0 (series avoids 0/0)
-    series = (w > 0) & (n < 1e-4)
+    # theta / n -> (1 - n^2 / (3 w^2)) / w as n / w -> 0 with w > 0 (series avoids 0/0); the
+    # test is on n / w, where the series is accurate whatever the scale of q
+    series = (w > 0) & (n < 1e-4 * w)
     w_safe = jnp.where(series, w, 1)
     ratio_series = (1 - n * n / (3 * w_safe * w_safe)) / w_safe
     ratio = jnp.where(series, ratio_series, safe_div(theta, n))
