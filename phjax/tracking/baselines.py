@@ -14,7 +14,10 @@ stream (absolute UNIX timestamps lose sub-millisecond resolution).
   :func:`one_euro_extrapolation`, :func:`alpha_beta`, :func:`kalman_extrapolation`,
   :func:`imm_extrapolation`, :func:`snapshot_interpolation`): the output at render time ``tau``
   depends only on measurements with ``t <= tau``; render times before the first valid
-  measurement of a channel give NaN.
+  measurement of a channel give NaN. Through a loss (lost frames or no frames) :func:`hold` and
+  :func:`one_euro` hold the last estimate, and the extrapolating methods keep predicting from
+  the last state with its velocity for as long as the loss lasts (no coasting limit such as
+  :attr:`phjax.TrackerConfig.coast_time`).
 * **Offline** methods (:func:`linear_slerp`, :func:`cubic_spline`) use all measurements (not
   causal); render times outside the valid range are clamped to the end poses.
 
@@ -543,9 +546,10 @@ def alpha_beta(
     sets the estimate, the second the velocity by the two-point difference; afterwards
     ``x^- = x + v Te``, ``r = z - x^-``, ``x = x^- + alpha r``, ``v += beta r / Te``. On SO(3) the
     same in the world-frame tangent space: ``q^- = exp(w Te) q``, ``r = log(z (q^-)^-1)``
-    (shortest arc), ``q = exp(alpha r) q^-``, ``w += beta r / Te``. A render time ``tau`` shows the
-    latest estimate extrapolated to ``u = tau + lookahead`` (``x + v (u - t)``,
-    ``exp(w (u - t)) q``).
+    (shortest arc), ``q = exp(alpha r) q^-``, ``w += beta r / Te``. A measurement with the same
+    timestamp as the previous valid one of its channel (``Te = 0``) is ignored, as in
+    :func:`one_euro`. A render time ``tau`` shows the latest estimate extrapolated to
+    ``u = tau + lookahead`` (``x + v (u - t)``, ``exp(w (u - t)) q``).
 
     Arguments:
         times, positions, quaternions, render_times: the measurements ``(n,)``, ``(n, 3)`` m,
@@ -572,6 +576,9 @@ def alpha_beta(
         # count (0, 1, >= 2 valid samples so far), time, estimate, velocity of one channel
         c, tp, x, v = state
         te = ti - tp
+        # a repeated timestamp (Te = 0) is skipped, as in one_euro (the first sample is kept):
+        # applied, it set the velocity to 0 at the second sample and doubled the gain later
+        ok = ok & ((c == 0) | (te > 0))
         xp = plus(x, v * te)
         r = minus(zi, xp)
         x_new = jnp.where(c >= 2, plus(xp, a * r), zi)
@@ -642,8 +649,11 @@ def snapshot_interpolation(
 
     The Kalman filter (:mod:`phjax.tracking.kalman`) filters the measurements; a render time
     ``tau`` shows the filtered poses interpolated (linear / slerp) at ``tau - delay``, clamped to
-    the latest frame time ``<= tau`` (so only frames already received are used; after dropouts
-    the pose holds). Smooth between frames, late by about ``delay``.
+    the latest frame time ``<= tau`` (so only frames already received are used; after the last
+    frame the pose holds). At a lost frame (NaN row) the filter's state is its prediction to
+    that frame's time, so through a dropout the output follows the filter's constant-velocity
+    prediction, ``delay`` late. Between the first filtered frame and ``delay`` later it holds
+    the first filtered pose. Smooth between frames, late by about ``delay``.
 
     Arguments:
         times, positions, quaternions, render_times: the measurements ``(n,)``, ``(n, 3)`` m,
@@ -652,7 +662,8 @@ def snapshot_interpolation(
         config: :class:`phjax.KalmanConfig` of the filter (the knob: its process noise;
             default :data:`TUNED` ``["snapshot"]`` noise, the setting tuned for this method,
             as :func:`phjax.evaluation.report.default_methods` runs it).
-        delay: render delay, s (default: one camera period, the median frame interval).
+        delay: render delay, s (default: one camera period, the median interval between the
+            distinct frame times, lost frames included).
 
     Returns:
         ``(positions (m, 3), quaternions (m, 4))``; NaN before the filter has started.
@@ -661,9 +672,10 @@ def snapshot_interpolation(
     from .tracker import _run_recording
 
     config = KalmanConfig(**TUNED["snapshot"]) if config is None else config
-    t = np.asarray(times, np.float64)
     if delay is None:
-        d = np.diff(t)
+        # frame intervals of the distinct times, as the filter sees them (duplicates dropped,
+        # sorted): with each frame repeated, the median of the raw differences was 0
+        d = np.diff(np.unique(np.asarray(times, np.float64)))
         delay = float(np.median(d)) if d.size else 0.0
     cfg = (config, float(delay))
     return _run_recording(_snapshot_jit, cfg, times, positions, quaternions, render_times, None)
