@@ -83,6 +83,16 @@ def _wait_optimised(program, timeout: float | None) -> bool:
     return program.wait(timeout) if isinstance(program, Tiered) else True
 
 
+def _update_timed(config: TrackerConfig, state: TrackerState, t, position, quaternion):
+    """:func:`~phjax.tracking.tracker._update`, except that a time that is not finite in the
+    state's dtype (a NaN or inf ``jax.Array`` time, which the stream cannot check on the host
+    without waiting for the device) leaves the state as it was: it would make the render
+    segment NaN (inf: for good)."""
+    new = _update(config, state, t, position, quaternion)
+    ok = jnp.isfinite(jnp.asarray(t, state.segment.start.dtype))
+    return jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, state)
+
+
 @functools.cache
 def _sample_on_leaves(segment_def):
     """``jit(_sample)`` on the flat leaf list of a render segment."""
@@ -106,7 +116,8 @@ class TrackerStream:
             1.7e9 s to 128 s. A ``jax.Array`` time is taken as relative to the origin already
             (0 unless ``t`` was given) and passed on unchanged; such an update also skips the
             one-part completion below (its position and quaternion go to the filter as
-            given). The state's times still grow with uptime: in float32, constant motion at
+            given; one that is not finite leaves the state unchanged, as the host cannot
+            check it without waiting for the device). The state's times still grow with uptime: in float32, constant motion at
             0.2 m/s and 60 deg/s is rendered within 0.3 mm / 0.1 deg after 4 h and 2.5 mm /
             0.75 deg after 24 h (measured); for longer sessions start a new stream (or use
             float64).
@@ -146,6 +157,7 @@ class TrackerStream:
         self.dtype = state.segment.start.dtype
         self._fast_start = fast_start
         self._scalar = np.dtype(self.dtype).type
+        self._max = float(np.finfo(self.dtype).max)
         self._state_def = jax.tree.structure(state)
         self._segment_def = jax.tree.structure(state.segment)
         self._n_filter = len(jax.tree.leaves(state.filter))  # the segment's leaves follow
@@ -205,7 +217,7 @@ class TrackerStream:
                              "than the stream's (IMM or not, model count or order, "
                              "noise_window on or off); start a new TrackerStream for it")
         leaves, self._config_def = jax.tree.flatten(tracker_config_arrays(config, self.dtype))
-        self._update = self._program(_update)
+        self._update = self._program(_update_timed)
         self._config_leaves = leaves
         self.config = config
 
@@ -224,9 +236,12 @@ class TrackerStream:
         t = float(t)
         if not math.isfinite(t):
             raise ValueError(f"tracker update: t must be finite, got {t}")
-        if self.origin is None:
-            self.origin = t
-        return self._scalar(t - self.origin)
+        origin = t if self.origin is None else self.origin
+        if abs(t - origin) > self._max:  # would be inf in the state's dtype
+            raise ValueError(f"tracker update: t must be within the range of {np.dtype(self.dtype)} "
+                             f"from the stream's origin {origin}, got {t}")
+        self.origin = origin
+        return self._scalar(t - origin)
 
     @property
     def state(self) -> TrackerState:
@@ -250,6 +265,10 @@ class TrackerStream:
                 class docs).
             position: measured position, m (NaN if missing).
             quaternion: measured orientation wxyz (NaN if missing; sign irrelevant).
+
+        Raises:
+            ValueError: a host ``t`` that is not finite, or beyond the range of the state's
+                dtype from :attr:`origin` (inf in the state); a measurement of another shape.
         """
         if not isinstance(t, jax.Array):  # host values: one input signature for every call
             t, position, quaternion = (self._relative(t), np.asarray(position, self.dtype),
@@ -257,6 +276,9 @@ class TrackerStream:
             position, quaternion = self._complete(position, quaternion)
         else:  # device values: relative to the origin already (0 unless set)
             self.origin = 0.0 if self.origin is None else self.origin
+            # host measurements (lists, float64) in the stream's dtype: one input signature
+            position, quaternion = (x if isinstance(x, jax.Array) else np.asarray(x, self.dtype)
+                                    for x in (position, quaternion))
         self._leaves = self._update(self._config_leaves, self._leaves, t, position, quaternion)
 
     def measurement_noise(self) -> tuple[float, float]:
@@ -290,8 +312,23 @@ class TrackerStream:
 
         Returns:
             ``(position (*T, 3), quaternion (*T, 4))``; NaN before the first valid measurement.
+
+        Raises:
+            ValueError: a host time that is not finite, or beyond the range of the state's
+                dtype from :attr:`origin` (a ``jax.Array`` is not checked: that would wait for
+                the device).
         """
         if not isinstance(t_render, jax.Array):
-            t_render = (np.asarray(t_render, np.float64) - (self.origin or 0.0)).astype(self.dtype)
+            origin, m = self.origin or 0.0, self._max
+            if isinstance(t_render, float):  # a render loop's time: the fast path
+                rel = t_render - origin
+                ok = -m <= rel <= m  # False for NaN
+            else:
+                rel = np.asarray(t_render, np.float64) - origin
+                ok = bool((np.abs(rel) <= m).all())
+            if not ok:  # NaN, inf, or inf in the state's dtype
+                raise ValueError(f"tracker sample: t_render must be finite and within the range of "
+                                 f"{np.dtype(self.dtype)} from the stream's origin, got {t_render}")
+            t_render = np.asarray(rel, self.dtype)
         segment = self._leaves[self._n_filter:self._n_filter + self._n_segment]
         return _sample_on_leaves(self._segment_def)(segment, t_render)
