@@ -117,10 +117,10 @@ class TrackerStream:
             (0 unless ``t`` was given) and passed on unchanged; such an update also skips the
             one-part completion below (its position and quaternion go to the filter as
             given; one that is not finite leaves the state unchanged, as the host cannot
-            check it without waiting for the device). The state's times still grow with uptime: in float32, constant motion at
-            0.2 m/s and 60 deg/s is rendered within 0.3 mm / 0.1 deg after 4 h and 2.5 mm /
-            0.75 deg after 24 h (measured); for longer sessions start a new stream (or use
-            float64).
+            check it without waiting for the device). The state's times still grow with
+            uptime: in float32, constant motion at 0.2 m/s and 60 deg/s is rendered within
+            0.3 mm / 0.1 deg after 4 h and 2.5 mm / 0.75 deg after 24 h (measured); for longer
+            sessions start a new stream (or use float64).
         dtype: floating dtype of the state (default float32, the real-time precision; float64
             needs ``jax_enable_x64``).
         fast_start: compile the first update quickly (XLA ``-O0``: on a 2-core CPU 2.2 s
