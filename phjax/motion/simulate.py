@@ -48,9 +48,36 @@ class SensorModel(eqx.Module):
 
 
 def _as_key(key_or_seed) -> Array:
+    """A ``jax.random`` key from an integer seed (0-d integer arrays included) or a key (typed,
+    or a raw ``uint32`` key of shape ``(2,)``); anything else is a ``ValueError``."""
     if isinstance(key_or_seed, (int, np.integer)):
         return jax.random.key(int(key_or_seed))
-    return key_or_seed
+    dtype, shape = getattr(key_or_seed, "dtype", None), np.shape(key_or_seed)
+    if dtype is not None:
+        if jnp.issubdtype(dtype, jax.dtypes.prng_key) and shape == ():
+            return key_or_seed
+        if dtype == np.uint32 and shape == (2,):  # a raw key (jax.random.PRNGKey)
+            return key_or_seed
+        if jnp.issubdtype(dtype, jnp.integer) and shape == ():
+            return jax.random.key(int(key_or_seed))
+    raise ValueError(f"key_or_seed must be an integer seed or a jax.random key; got "
+                     f"{getattr(dtype, 'name', type(key_or_seed).__name__)} of shape {shape}")
+
+
+def _check_model(model: SensorModel) -> None:
+    """One-line ``ValueError`` naming the first field of ``model`` out of its range."""
+    vals = {f: float(getattr(model, f))
+            for f in ("rate", "sigma_p", "sigma_r", "dropout", "jitter", "latency")}
+    for field, v in vals.items():
+        if not np.isfinite(v):
+            raise ValueError(f"SensorModel.{field} must be finite, got {v}")
+    if not vals["rate"] > 0:
+        raise ValueError(f"SensorModel.rate must be positive, got {vals['rate']}")
+    if not 0 <= vals["dropout"] < 1:
+        raise ValueError(f"SensorModel.dropout must be in [0, 1), got {vals['dropout']}")
+    for field in ("sigma_p", "sigma_r", "jitter"):
+        if vals[field] < 0:
+            raise ValueError(f"SensorModel.{field} must be non-negative, got {vals[field]}")
 
 
 def simulate_measurements(
@@ -92,8 +119,8 @@ def simulate_measurements(
     frames have NaN times, as :func:`phjax.track` expects).
 
     Arguments:
-        key_or_seed: a ``jax.random`` key or an integer seed (for batches also one per
-            recording).
+        key_or_seed: a ``jax.random`` key (typed, or a raw ``uint32`` one) or an integer
+            seed, 0-d integer arrays included (for batches also one per recording).
         gt_times, gt_positions, gt_quaternions: ground truth (``wxyz``), times non-decreasing,
             ``(*B, n)``, ``(*B, n, 3)``, ``(*B, n, 4)``.
         model: the :class:`SensorModel` (shared by a batch).
@@ -103,6 +130,12 @@ def simulate_measurements(
     Returns:
         ``(times (*B, m), positions (*B, m, 3), quaternions (*B, m, 4))`` in the ground-truth
         dtype.
+
+    Raises:
+        ValueError: naming the field, for a :class:`SensorModel` field that is not finite or
+            out of its range, a ground truth with no valid position or orientation sample, a
+            key that is neither a seed nor a key, or times that ``gt_times``' own dtype or the
+            result dtype cannot resolve to a hundredth of the camera period.
     """
     if np.ndim(gt_times) > 1:
         return _simulate_batch(key_or_seed, gt_times, gt_positions, gt_quaternions, model,
@@ -112,13 +145,8 @@ def simulate_measurements(
         raise ValueError("gt_times must be a non-empty 1-D array of finite times")
     if np.any(np.diff(gt_t) < 0):
         raise ValueError("gt_times must be sorted")
+    _check_model(model)
     rate, jitter = float(model.rate), float(model.jitter)
-    if not rate > 0:
-        raise ValueError(f"rate must be positive, got {rate}")
-    if not (0 <= float(model.dropout) < 1):
-        raise ValueError(f"dropout must be in [0, 1), got {model.dropout}")
-    if min(float(model.sigma_p), float(model.sigma_r), jitter) < 0:
-        raise ValueError("sigma_p, sigma_r and jitter must be non-negative")
     max_gap = ground_truth_max_gap(gt_t, max_gt_gap)
     if not max_gap > 0:  # NaN included
         raise ValueError(f"max_gt_gap must be positive (inf: no limit), got {max_gt_gap}")
@@ -128,6 +156,13 @@ def simulate_measurements(
         raise ValueError(f"expected gt_times (n,), gt_positions (n, 3), gt_quaternions (n, 4); "
                          f"got {gt_t.shape}, {gt_p.shape}, {gt_q.shape}")
     dtype = jnp.result_type(gt_p, gt_q, jnp.float32)
+    # host check of what _measure's valid_rows / valid_quaternion_rows find (no pose at all
+    # would silently give a recording of lost frames)
+    q_fin = np.isfinite(gt_q).all(-1)
+    q_ok = q_fin & (np.sum(np.where(q_fin[:, None], gt_q, 0).astype(dtype) ** 2, -1) > 0)
+    if not (np.isfinite(gt_p).all(-1).any() or q_ok.any()):
+        raise ValueError("the ground truth has no valid position or orientation sample (all "
+                         "NaN / infinite, quaternions zero)")
 
     t0, t1 = gt_t[0], gt_t[-1]
     m = int(np.floor((t1 - t0) * rate + 1e-9)) + 1
@@ -145,12 +180,16 @@ def simulate_measurements(
 
     # the interpolation relative to the first ground-truth time (epoch times would be rounded
     # to minutes in float32); the returned times must resolve the sampling in ``dtype``
+    # and the caller's gt_times must have resolved them: float32 epoch times with float64
+    # poses were rounded to 128 s before the call (a 10 s recording became one frame)
     last = max(abs(t0), abs(t1)) + abs(float(model.latency))
-    if np.spacing(np.asarray(last, dtype)) > 1e-2 * period:
-        raise ValueError(
-            f"times up to {last:.6g} s cannot be returned in {np.dtype(dtype).name} to a "
-            f"hundredth of the camera period; pass times relative to the first (t - t[0]) "
-            "or enable jax_enable_x64")
+    t_dtype = np.asarray(gt_times).dtype
+    for dt, what, at in ((dtype, "returned", last), (t_dtype, "given", max(abs(t0), abs(t1)))):
+        if np.issubdtype(dt, np.floating) and np.spacing(np.asarray(at, dt)) > 1e-2 * period:
+            raise ValueError(
+                f"times up to {at:.6g} s cannot be {what} in {np.dtype(dt).name} to a "
+                f"hundredth of the camera period; pass times relative to the first (t - t[0]) "
+                "or enable jax_enable_x64")
     gt = pad_samples((gt_t - t0).astype(dtype), gt_p.astype(dtype), gt_q.astype(dtype),
                      (sample_t - t0).astype(dtype))
     p_meas, q_meas = _measure(*gt, k_p, k_r, k_drop, *(jnp.asarray(float(x), dtype) for x in (
@@ -202,6 +241,9 @@ def _simulate_batch(key_or_seed, gt_times, gt_positions, gt_quaternions, model, 
     """:func:`simulate_measurements` of each recording of a NaN-padded batch, padded again."""
     from ..batch import pad_recordings
 
+    t_dtype = np.asarray(gt_times).dtype  # checked per recording (see the single case)
+    if not np.issubdtype(t_dtype, np.floating):
+        t_dtype = np.dtype(np.float64)
     t = np.asarray(gt_times, np.float64)
     p, q = jnp.asarray(gt_positions), jnp.asarray(gt_quaternions)
     b, n = t.shape[:-1], t.shape[-1]
@@ -217,7 +259,8 @@ def _simulate_batch(key_or_seed, gt_times, gt_positions, gt_quaternions, model, 
         if not keep.any():
             raise ValueError(f"recording {i} of the batch has no ground-truth time")
         outs.append([np.asarray(x, np.float64) for x in simulate_measurements(
-            keys[i], t[i][keep], pn[i][keep].astype(dtype), qn[i][keep].astype(dtype), model,
+            keys[i], t[i][keep].astype(t_dtype), pn[i][keep].astype(dtype),
+            qn[i][keep].astype(dtype), model,
             max_gt_gap=max_gt_gap)])
     mt, mp, mq = pad_recordings(*zip(*outs))
     m = mt.shape[-1]
@@ -328,11 +371,13 @@ def synthetic_head_motion(
 
     Returns:
         ``(times (n,), positions (n, 3), quaternions (n, 4))`` as float64 NumPy arrays with
-        ``times = arange(n) / rate`` covering ``[0, duration]``; quaternions are ``wxyz``,
+        ``times = arange(n) / rate``, ``n = round(duration * rate) + 1`` (from 0 to
+        ``duration`` rounded to the nearest sample; duration and rate positive and finite);
+        quaternions are ``wxyz``,
         hemisphere-continuous.
     """
-    if not (duration > 0 and rate > 0):
-        raise ValueError("duration and rate must be positive")
+    if not (0 < duration < np.inf and 0 < rate < np.inf):
+        raise ValueError(f"duration and rate must be positive and finite, got {duration}, {rate}")
     rng = np.random.default_rng(seed)
     n = int(round(duration * rate)) + 1
     t = np.arange(n) / rate
