@@ -148,7 +148,10 @@ class HeadPoseConfig:
     provisional until a frame with a detected face aligns to it; a detected face that fails to
     align to a provisional reference starts a new one at once. A confirmed reference is replaced
     after ``reacquire_after`` failed alignments in a row, at the next one with a detected face
-    (0: never). A new reference keeps the last confirmed orientation (or the start rule's).
+    (0: never). A new reference keeps the last confirmed orientation (or the start rule's),
+    also when the frame that drops the old one has too little depth to start it (NO_DEPTH):
+    the next frame that can starts it with that orientation, never by the first-frame rule
+    (``reference_pose``).
     """
 
     backend: str = "opencv"
@@ -639,6 +642,8 @@ class HeadPoseEstimator:
             self._reference_pose = _checked_reference(reference_pose)
         self._forget_keyframes()
         self._last: tuple[np.ndarray, np.ndarray] | None = None
+        #: orientation a re-acquired reference starts with (None: the first-frame rule)
+        self._keep_q: np.ndarray | None = None
         self._frame_index = 0
 
     def _forget_keyframes(self) -> None:
@@ -719,13 +724,17 @@ class HeadPoseEstimator:
         Returns:
             A :class:`HeadPoseResult`; never raises for bad frame content: wrong colour /
             depth arrays and missing or invalid intrinsics (not finite ``fx, fy > 0``, finite
-            ``cx, cy``; another image size) and a non-finite ``t`` give ``INVALID_INPUT``.
+            ``cx, cy``; another image size) and a non-finite or non-numeric ``t`` give
+            ``INVALID_INPUT`` (the result then has a NaN ``timestamp``).
         """
         t_start = time.perf_counter()
         cfg = self.config
         idx = self._frame_index
         self._frame_index += 1
-        t = idx / 30.0 if t is None else float(t)
+        try:
+            t = idx / 30.0 if t is None else float(t)
+        except (TypeError, ValueError, OverflowError):  # not a number (it raised): no time
+            t = float("nan")
         intr = intrinsics if intrinsics is not None else self.intrinsics
         checked = self._checked_inputs(color, depth, intr)
         if checked is None or not math.isfinite(t):  # a NaN time made an OK pose at NaN
@@ -758,8 +767,8 @@ class HeadPoseEstimator:
         common = {"face": face, "face_source": source, "face_box": box}
 
         # --- 3. first frame: reference keyframe
-        def start_reference(q_ref=None):
-            q_ref, p_ref = self._start_reference(fr, idx, face is not None, q_ref)
+        def start_reference():
+            q_ref, p_ref = self._start_reference(fr, idx, face is not None, self._keep_q)
             if q_ref is None:
                 return self._result(t, HeadPoseStatus.NO_DEPTH, timings=timings, **common)
             timings["jax"] = time.perf_counter() - t0
@@ -781,10 +790,13 @@ class HeadPoseEstimator:
             self._failed_run += 1
             n = cfg.reacquire_after
             if face is not None and (not self._confirmed or (n and self._failed_run >= n)):
-                # a face the reference does not fit: start again at it
-                q_keep = self._last[0] if self._confirmed and self._last is not None else None
+                # a face the reference does not fit: start again at it, keeping the orientation
+                # until a confirmed reference is made (this frame may have too little depth for
+                # one: the next frame must not start by the first-frame rule, reference_pose)
+                if self._confirmed and self._last is not None:
+                    self._keep_q = self._last[0]
                 self._forget_keyframes()
-                return start_reference(q_keep)
+                return start_reference()
             # what failed: the correspondences (no RANSAC / landmark candidate) or the alignment
             status = (HeadPoseStatus.ALIGNMENT_FAILED if bool(est.any_measured)
                       else HeadPoseStatus.TOO_FEW_MATCHES)
@@ -792,6 +804,8 @@ class HeadPoseEstimator:
             return self._result(t, status, timings=timings, **common, **info)
         self._failed_run = 0
         self._confirmed = self._confirmed or face is not None
+        if self._confirmed:
+            self._keep_q = None
 
         # --- 5. absolute pose, keyframes
         kf = self.keyframes[kf_i]
@@ -889,6 +903,8 @@ class HeadPoseEstimator:
         self._kf_quats.append(q_ref)
         self._last = (q_ref, p_ref)
         self._confirmed = detected or self.detector is None
+        if self._confirmed:
+            self._keep_q = None
         return q_ref, p_ref
 
     def _align_to_keyframe(self, fr, idx: int):
