@@ -10,10 +10,11 @@ gave none). :func:`open_source` parses the ``SOURCE`` argument of ``phjax live``
     (:class:`phjax.vision.HeadPoseEstimator`). Rendering a frame takes 0.1-0.4 s of CPU, so
     :class:`SyntheticSource` renders the frames once, before the first run that needs them,
     into a frame cache (:func:`frame_cache_dir`; in memory, with a warning, when that folder
-    cannot be made) and plays them back like a camera.
+    cannot be made or a frame cannot be written to it) and plays them back like a camera.
 an RGB-D recording
     any folder :func:`phjax.vision.open_rgbd` accepts (Biwi, TUM RGB-D, colour + depth),
-    replayed at its own timestamps through the same front-end.
+    replayed at its own timestamps through the same front-end; a frame whose image is missing
+    or cannot be read is a lost frame (``NO_FRAME``) and the replay goes on.
 ``webcam[:INDEX]`` (``INDEX`` 0-99) or a video file
     OpenCV ``VideoCapture``, colour only, monocular head pose
     (:class:`phjax.vision.monocular.MonocularHeadPose`: opentrack's head-pose network by
@@ -204,8 +205,9 @@ class PoseReplaySource(Source):
     """Recorded poses replayed at their timestamps (relative to the first), no vision.
 
     Arguments:
-        times: ``(n,)`` s (non-decreasing); positions ``(n, 3)`` m; quaternions ``(n, 4)``
-            ``wxyz`` (NaN entries are missing measurements).
+        times: ``(n,)`` s (finite, non-decreasing: a :class:`SourceError` otherwise);
+            positions ``(n, 3)`` m; quaternions ``(n, 4)`` ``wxyz`` (NaN entries are missing
+            measurements).
         name: a description.
     """
 
@@ -217,6 +219,10 @@ class PoseReplaySource(Source):
         if n < 1 or self.positions.shape != (n, 3) or self.quaternions.shape != (n, 4):
             raise SourceError(f"{name}: need n >= 1 times with (n, 3) positions and (n, 4) "
                               "quaternions")
+        # a NaN time made the real clock's sleep spin until the run was stopped, a time
+        # before the previous one reached the tracker out of order
+        if not np.isfinite(self.times).all() or np.any(np.diff(self.times) < 0):
+            raise SourceError(f"{name}: the times must be finite and non-decreasing")
         self.name = name
         dt = np.diff(self.times)
         self.rate = float(1.0 / np.median(dt)) if n > 1 and np.median(dt) > 0 else None
@@ -315,6 +321,8 @@ class RGBDReplaySource(Source):
             raise SourceError(f"{self.name}: no frames")
         dt = np.diff(stamps)
         self.rate = float(1.0 / np.median(dt)) if dt.size and np.median(dt) > 0 else None
+        self.unreadable = 0  # frames that could not be read (NO_FRAME measurements)
+        self.read_error: str | None = None  # the first of their errors
 
     def open(self) -> None:
         from ..vision.head_pose import HeadPoseEstimator
@@ -323,9 +331,22 @@ class RGBDReplaySource(Source):
             self.estimator = _with_models(lambda: HeadPoseEstimator(
                 self.sequence.intrinsics, model_dir=self.model_dir))
         # warm-up: compile the front-end's stages (the first frame starts a reference, the
-        # next ones are aligned to it) and the renderer of a synthetic sequence
-        for i in range(min(3, len(self.sequence))):
-            self.estimator.process_frame(self.sequence[i])
+        # next ones are aligned to it) and the renderer of a synthetic sequence; a frame that
+        # cannot be read is skipped here as during the run (a lost frame)
+        warm, error = 0, None
+        for i in range(min(10, len(self.sequence))):
+            try:
+                frame = self.sequence[i]
+            except (OSError, ValueError) as e:
+                error = error or e
+                continue
+            self.estimator.process_frame(frame)
+            warm += 1
+            if warm == 3:
+                break
+        if warm == 0 and error is not None:
+            raise SourceError(f"{self.name}: no readable frame among the first "
+                              f"{min(10, len(self.sequence))}: {error}")
         self.estimator.reset()
 
     def _times(self) -> np.ndarray:
@@ -333,6 +354,8 @@ class RGBDReplaySource(Source):
         return rel - rel[0]
 
     def _process(self, clock, t_capture: float, frame, dropped: int) -> Measurement:
+        if frame is None:  # could not be read (a missing or damaged image): a lost frame
+            return Measurement(t_capture, *_nan_pose(), status="NO_FRAME", dropped=dropped)
         t_work = clock.now()
         r = self.estimator.process_frame(frame)
         return Measurement(t_capture, r.position, r.quaternion, r.status.name,
@@ -384,7 +407,12 @@ class RGBDReplaySource(Source):
             due = int(np.searchsorted(rel, t_start - t0 + load_est, side="right")) - 1
             skipped = max(0, min(due, n - 1) - i)
             i += skipped
-            frame = self.sequence[i]
+            try:
+                frame = self.sequence[i]
+            except (OSError, ValueError) as e:  # a missing or damaged image: lost, go on
+                frame = None
+                self.unreadable += 1
+                self.read_error = self.read_error or f"{type(e).__name__}: {e}"
             load_est = 0.7 * load_est + 0.3 * (clock.now() - t_start)
             clock.sleep_until(t0 + rel[i], stop)
             if stop.is_set():
@@ -570,6 +598,8 @@ class SyntheticSource(RGBDReplaySource):
             lambda line: print(line, file=sys.stderr, flush=True))
         self._memory: dict[str, bytes] = {}
         self.rendered = 0  # frames rendered by the last open() (the others came from the cache)
+        self.unreadable, self.read_error = 0, None
+        self._unwritten: OSError | None = None  # why a frame could not go to the cache
 
     @property
     def folder(self) -> Path | None:
@@ -646,8 +676,9 @@ class SyntheticSource(RGBDReplaySource):
         return self.folder / f"{self._keys[i]}.bin"
 
     def _read(self, i: int) -> bytes | np.ndarray | None:
-        if self.cache is None:
-            return self._memory.get(self._keys[i])
+        kept = self._memory.get(self._keys[i])
+        if self.cache is None or kept is not None:
+            return kept
         h, w = self._shape
         path = self._path(i)
         try:
@@ -667,8 +698,16 @@ class SyntheticSource(RGBDReplaySource):
             return
         path = self._path(i)
         tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-        tmp.write_bytes(data)
-        os.replace(tmp, path)  # atomic: a reader never sees half a frame
+        try:
+            tmp.write_bytes(data)
+            os.replace(tmp, path)  # atomic: a reader never sees half a frame
+        except OSError as e:  # a read-only or full cache: this run keeps the frame in memory
+            self._memory[self._keys[i]] = data
+            self._unwritten = self._unwritten or e
+            try:
+                tmp.unlink()
+            except OSError:
+                pass
 
     def _render(self, rendered, missing: list[int]) -> None:
         from concurrent.futures import ThreadPoolExecutor
@@ -687,6 +726,12 @@ class SyntheticSource(RGBDReplaySource):
                 pass
         self.report(f"synthetic head: rendered {len(missing)} frames in "
                     f"{time.perf_counter() - t:.0f} s")
+        if self._unwritten is not None:
+            kept = sum(self._keys[i] in self._memory for i in missing)
+            e = self._unwritten
+            self.report(f"synthetic head: warning: {kept} frame(s) could not be written to "
+                        f"{self.folder} ({e.strerror or type(e).__name__}); kept in memory "
+                        "for this run")
 
     def _load(self, i: int, timestamp: float, intrinsics):
         from ..vision.rgbd_io import RGBDFrame
