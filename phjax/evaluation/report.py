@@ -167,8 +167,26 @@ def evaluate_recording(
 
     Returns:
         An :class:`EvaluationResult`.
+
+    Raises:
+        ValueError: ``render_rate`` not a positive finite number, ``methods`` empty or with a
+            repeated name, a method returning other shapes than ``(m, 3)`` and ``(m, 4)`` for
+            ``m`` render times (naming it), or a recording too short to score. An exception
+            raised inside a method carries a note naming the method.
+
+    Warns:
+        phjax.io.TrajectoryWarning: sparse ground truth (see
+        :func:`phjax.motion.resample.warn_sparse_ground_truth`), and one warning naming every
+        table cell that no sample scored although the ground truth has that part (a stream that
+        is NaN everywhere; lags when the render times span no more than the 0.4 s lag search).
     """
-    methods = default_methods() if methods is None else methods
+    methods = default_methods() if methods is None else list(methods)
+    if not methods:
+        raise ValueError("methods is empty: give at least one Method to evaluate")
+    names = [m.name for m in methods]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:  # the table has one row per name: a second one would replace the first
+        raise ValueError(f"method names must be unique; repeated: {', '.join(map(repr, repeated))}")
     gt_t, gt_p, gt_q, (mt, mp, mq), render, origin = simulate_and_grid(
         gt_times, gt_positions, gt_quaternions, sensor=sensor, render_rate=render_rate, seed=seed,
         max_gt_gap=max_gt_gap)
@@ -184,14 +202,55 @@ def evaluate_recording(
         iterator = tqdm(methods, desc="methods", leave=False)
     metrics, streams, causal, baseline = {}, {}, {}, {}
     for m in iterator:
-        p, q = m.fn(mt, mp, mq, render)
+        try:
+            p, q = m.fn(mt, mp, mq, render)
+        except Exception as e:
+            e.add_note(f"(in method {m.name!r} of evaluate_recording)")
+            raise
         p, q = np.asarray(p, np.float64), np.asarray(q, np.float64)
+        if p.shape != (render.size, 3) or q.shape != (render.size, 4):
+            raise ValueError(
+                f"method {m.name!r} returned positions of shape {p.shape} and quaternions of "
+                f"shape {q.shape}; expected ({render.size}, 3) and ({render.size}, 4), one row per "
+                "render time")
         streams[m.name] = (p, q)
         causal[m.name] = m.causal
         baseline[m.name] = m.baseline
         metrics[m.name] = evaluate_metrics(render, p, q, gp, gq, boundary_times=mt[valid])
+    _warn_unscored(metrics, render, gp, gq)
     return EvaluationResult(metrics, render + origin, gp, gq, (mt + origin, mp, mq), streams, causal,
                             baseline)
+
+
+def _warn_unscored(metrics: dict[str, dict], render: np.ndarray, gp: np.ndarray,
+                   gq: np.ndarray) -> None:
+    """One :class:`phjax.io.TrajectoryWarning` naming the table cells that no sample scored
+    although the ground truth has that part (the table shows ``-`` there): a method whose
+    stream is NaN everywhere, or lags on a render span shorter than the lag search range."""
+    import inspect
+    import warnings
+
+    from ..io import TrajectoryWarning
+
+    known = {"pos": bool(np.isfinite(gp).all(-1).any()),
+             "rot": bool(np.isfinite(gq).all(-1).any())}
+    missing = {}
+    for name, m in metrics.items():
+        cols = [head for key, head, _ in _COLUMNS
+                if known[head[:3]] and m.get(key + "_n", 1) == 0]
+        if cols:
+            missing[name] = cols
+    if not missing:
+        return
+    lo, hi = inspect.signature(evaluate_metrics).parameters["lag_range"].default
+    span = float(render[-1] - render[0]) if render.size else 0.0
+    why = ""
+    if span <= hi - lo and any("lag" in c for cols in missing.values() for c in cols):
+        why = (f"; the lag search ({1e3 * lo:g} to {1e3 * hi:g} ms) needs more than "
+               f"{hi - lo:g} s of render samples, these span {span:.3g} s")
+    what = "; ".join(f"{n} ({', '.join(c)})" for n, c in missing.items())
+    warnings.warn(f"no sample scored (shown as '-') for {what}{why}", TrajectoryWarning,
+                  stacklevel=3)
 
 
 #: the fewest render samples an evaluation scores (a third difference for jerk, a few shifts
@@ -213,6 +272,9 @@ def simulate_and_grid(gt_times, gt_positions, gt_quaternions, *,
         origin)``: float64 arrays, times relative to ``origin`` (the first ground-truth time).
     """
     sensor = SensorModel() if sensor is None else sensor
+    rate = float(render_rate)
+    if not (np.isfinite(rate) and rate > 0):
+        raise ValueError(f"render_rate must be a positive, finite rate in Hz, got {render_rate}")
     gt_times = np.asarray(gt_times, np.float64)
     origin = gt_times[0]
     gt_t = gt_times - origin
