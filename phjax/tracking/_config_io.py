@@ -1,6 +1,13 @@
 """Tracker configurations as versioned JSON: :func:`config_to_dict` / :func:`config_from_dict`
 and the files :func:`save_config` writes and :func:`load_config` reads (``phjax tune -o``,
 the CLI's ``--config``). Re-exported by :mod:`phjax.tracking.tuning`.
+
+Reading is strict: a file is UTF-8 JSON (a leading byte-order mark is allowed) without
+duplicate keys, each field holds a JSON value of its type (numbers for the float fields, not
+``true`` or strings), and the float fields must lie in :data:`CONFIG_RANGES`, beyond which the
+float32 stream overflows or underflows to NaN poses (a value inside them may still be a bad
+choice; it is a finite one). :func:`save_config` writes only configurations that
+:func:`load_config` reads back, and replaces an existing file atomically.
 """
 
 from __future__ import annotations
@@ -20,6 +27,30 @@ from .tracker import TrackerConfig
 #: ``"format"`` tag and version of the JSON written by :func:`save_config`.
 CONFIG_FORMAT = "phjax.TrackerConfig"
 CONFIG_VERSION = 1
+
+#: Range ``(low, high)`` of each float field of a configuration file (``"imm.log_q"``: every
+#: motion model's ``log_q``). Measured on the float32 stream: ten times beyond ``high`` (or
+#: below ``low``) gives NaN poses for some field (e.g. a measurement std of 1e12, a horizon of
+#: 1e30, ``log_q`` 60), at these bounds every field alone gives finite poses.
+_POSITIVE = (1e-12, 1e6)
+CONFIG_RANGES = {
+    **{f"tracker.{n}": _POSITIVE for n in ("horizon", "stop_time")},
+    "tracker.coast_time": (0.0, 1e6),
+    "tracker.lookahead": (-1e6, 1e6),
+    "tracker.adapt": (-20.0, 20.0),
+    "tracker.noise_window": (0, 1_000_000),
+    **{f"kalman.{n}": _POSITIVE for n in (
+        "pos_process_noise", "pos_meas_noise", "rot_process_noise", "rot_meas_noise",
+        "init_pos_vel_std", "init_pos_acc_std", "init_rot_vel_std")},
+    **{f"imm.{n}": _POSITIVE for n in (
+        "pos_meas_noise", "rot_meas_noise", "init_pos_vel_std", "init_pos_acc_std",
+        "init_rot_vel_std")},
+    "imm.log_q": (-50.0, 50.0),
+}
+
+#: fields of a configuration file that hold a string (all others hold numbers, true / false
+#: or null)
+_STRING_FIELDS = {"kalman.model"}
 
 
 def _jsonable(v):
@@ -68,24 +99,69 @@ def _imm_to_dict(imm: IMMConfig | None) -> dict | None:
             "rotation_models": models(imm.rotation_models), **rest}
 
 
+def _is_number(value) -> bool:
+    """A JSON number (``true`` / ``false`` are not 1 / 0)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _models_from_list(models, key: str, source: str) -> tuple:
+    if not isinstance(models, list):
+        raise ValueError(f"{source}: invalid imm section: imm.{key} must be a list of "
+                         f'{{"model": "cv" | "ca", "log_q": number}} objects, got {models!r}')
+    out = []
+    for i, m in enumerate(models):
+        where = f"imm.{key}[{i}]"
+        if not isinstance(m, dict) or set(m) != {"model", "log_q"}:
+            raise ValueError(f"{source}: invalid imm section: {where} must be an object with "
+                             f'the keys "model" and "log_q" only, got {m!r}')
+        if not isinstance(m["model"], str) or m["model"] not in _MODEL_KINDS:
+            raise ValueError(f"{source}: invalid imm section: {where}.model must be one of "
+                             f"{sorted(_MODEL_KINDS)}, got {m['model']!r}")
+        if not _is_number(m["log_q"]):
+            raise ValueError(f"{source}: invalid imm section: {where}.log_q has an invalid "
+                             f"value {m['log_q']!r}")
+        try:
+            out.append(_MODEL_KINDS[m["model"]](log_q=float(m["log_q"])))
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{source}: invalid imm section: {where}: {err}") from None
+        _check_range(f"{where}.log_q", "imm.log_q", m["log_q"], source)
+    return tuple(out)
+
+
 def _imm_from_dict(sec, source: str) -> IMMConfig | None:
     if sec is None:
         return None
     if not isinstance(sec, dict):
         raise ValueError(f"{source}: 'imm' must be an object or null")
     sec = dict(sec)
+    known = _field_names(IMMConfig)
+    unknown = set(sec) - set(known)
+    if unknown:
+        raise ValueError(f"{source}: invalid imm section: unknown imm field(s) "
+                         f"{sorted(unknown)}; known: {known}")
+    kw = {key: _models_from_list(sec.pop(key), key, source)
+          for key in ("position_models", "rotation_models") if key in sec}
+    for name, value in sec.items():  # numbers only (true is not 1.0, "1" is not 1.0)
+        if not _is_number(value):
+            raise ValueError(f"{source}: invalid imm section: imm.{name} has an invalid "
+                             f"value {value!r}")
     try:
-        kw = {}
-        for key in ("position_models", "rotation_models"):
-            if key in sec:
-                kw[key] = tuple(_MODEL_KINDS[m["model"]](log_q=float(m["log_q"]))
-                                for m in sec.pop(key))
-        for name, value in sec.items():  # numbers only (true is not 1.0)
-            if isinstance(value, bool):
-                raise ValueError(f"imm.{name} has an invalid value {value!r}")
-        return IMMConfig(**kw, **sec)
-    except (KeyError, TypeError, ValueError) as err:
-        raise ValueError(f"{source}: invalid imm section: {err}") from err
+        imm = IMMConfig(**kw, **sec)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{source}: invalid imm section: {err}") from None
+    for name, value in sec.items():
+        _check_range(f"imm.{name}", f"imm.{name}", value, source)
+    return imm
+
+
+def _check_range(where: str, key: str, value, source: str) -> None:
+    """``ValueError`` for a (finite, already checked) number outside ``CONFIG_RANGES[key]``."""
+    if key not in CONFIG_RANGES or value is None:
+        return
+    low, high = CONFIG_RANGES[key]
+    if not low <= float(value) <= high:
+        raise ValueError(f"{source}: {where} = {value!r} is out of range [{low:g}, {high:g}] "
+                         "(beyond it the tracker fails or outputs NaN poses)")
 
 
 def config_from_dict(d: dict, source: str = "<dict>") -> TrackerConfig:
@@ -93,7 +169,8 @@ def config_from_dict(d: dict, source: str = "<dict>") -> TrackerConfig:
     section means the single-model filter, as in files written before the IMM existed).
 
     Raises:
-        ValueError: wrong format tag or version, unknown sections or fields, bad values.
+        ValueError: wrong format tag or version, unknown sections or fields, bad values
+            (wrong JSON types, or outside :data:`CONFIG_RANGES`).
     """
     if not isinstance(d, dict):
         raise ValueError(f"{source}: expected a JSON object, got {type(d).__name__}")
@@ -119,18 +196,24 @@ def config_from_dict(d: dict, source: str = "<dict>") -> TrackerConfig:
             raise ValueError(f"{source}: unknown {key} field(s) {sorted(unknown)}; known: {known}")
         flags = {f.name for f in dataclasses.fields(cls) if isinstance(f.default, bool)}
         for name, value in sec.items():
-            scalar = value is None or isinstance(value, (int, float, str))
+            scalar = value is None or isinstance(value, (int, float)) or (
+                isinstance(value, str) and f"{key}.{name}" in _STRING_FIELDS)
             # true / false only for the switches (a number field given true is a mistake)
             if isinstance(value, bool) != (name in flags) or not scalar:
                 raise ValueError(f"{source}: {key}.{name} has an invalid value {value!r}")
         sections[key] = sec
     try:
         kalman = KalmanConfig(**sections["kalman"])
-        # no "imm" section: a file from before the IMM, i.e. the single-model stream
-        imm = _imm_from_dict(d.get("imm"), source)
-        return TrackerConfig(kalman=kalman, imm=imm, **sections["tracker"])
+        config = TrackerConfig(kalman=kalman, imm=None, **sections["tracker"])
     except (TypeError, ValueError) as err:
-        raise ValueError(f"{source}: invalid configuration: {err}") from err
+        raise ValueError(f"{source}: invalid configuration: {err}") from None
+    for key, sec in sections.items():
+        for name, value in sec.items():
+            if not isinstance(value, bool):
+                _check_range(f"{key}.{name}", f"{key}.{name}", value, source)
+    # no "imm" section: a file from before the IMM, i.e. the single-model stream
+    imm = _imm_from_dict(d.get("imm"), source)
+    return config if imm is None else dataclasses.replace(config, imm=imm)
 
 
 def save_config(
@@ -138,12 +221,46 @@ def save_config(
 ) -> Path:
     """Write ``config`` (all fields, versioned) as JSON; ``metadata`` is stored alongside.
 
+    The file is written to a temporary file beside ``path`` and then renamed over it, so an
+    existing file is either kept or replaced whole, never left half written.
+
     Returns:
         The path written.
+
+    Raises:
+        TypeError: ``config`` is not a :class:`~phjax.TrackerConfig`, or ``metadata`` holds a
+            value JSON cannot store.
+        ValueError: a value :func:`load_config` would reject (see :data:`CONFIG_RANGES`).
+        OSError: the file cannot be written (e.g. its folder does not exist).
     """
+    if not isinstance(config, TrackerConfig):
+        raise TypeError(f"save_config: config must be a phjax.TrackerConfig, got "
+                        f"{type(config).__name__}")
     path = Path(path)
-    path.write_text(json.dumps(config_to_dict(config, metadata), indent=2) + "\n", encoding="utf-8")
+    if metadata is not None and not isinstance(metadata, dict):
+        raise TypeError(f"{path}: metadata must be a dict, got {type(metadata).__name__}")
+    try:
+        d = config_to_dict(config, metadata)
+    except (TypeError, ValueError) as err:  # json's "Circular reference" for an object
+        raise TypeError(f"{path}: metadata is not JSON-serialisable ({err})") from None
+    config_from_dict(d, str(path))  # never write a file that load_config rejects
+    text = json.dumps(d, indent=2) + "\n"
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
     return path
+
+
+def _no_duplicates(pairs: list) -> dict:
+    keys = [k for k, _ in pairs]
+    dup = sorted({k for k in keys if keys.count(k) > 1})
+    if dup:
+        raise ValueError(f"duplicate key(s) {dup}")
+    return dict(pairs)
 
 
 def load_config(path: str | os.PathLike) -> TrackerConfig:
@@ -151,14 +268,21 @@ def load_config(path: str | os.PathLike) -> TrackerConfig:
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: not valid JSON, wrong format/version, unknown fields or bad values.
+        ValueError: not valid JSON (also: duplicate keys, nesting too deep to read), wrong
+            format/version, unknown fields or bad values (also: outside
+            :data:`CONFIG_RANGES`).
+        OSError: another unreadable path (e.g. a folder).
     """
     path = Path(path)
     try:
-        d = json.loads(path.read_text(encoding="utf-8"))
+        d = json.loads(path.read_text(encoding="utf-8-sig"), object_pairs_hook=_no_duplicates)
     except UnicodeDecodeError as err:
         raise ValueError(f"{path}: not a JSON text file (byte {err.start} is not UTF-8)"
                          ) from None
     except json.JSONDecodeError as err:
         raise ValueError(f"{path}: not valid JSON ({err})") from err
+    except RecursionError:
+        raise ValueError(f"{path}: not a tracker configuration (JSON nested too deeply)") from None
+    except ValueError as err:  # _no_duplicates
+        raise ValueError(f"{path}: not a valid configuration: {err}") from None
     return config_from_dict(d, str(path))

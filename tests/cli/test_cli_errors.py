@@ -147,7 +147,7 @@ BAD_ARGUMENTS = [
 
 @pytest.mark.parametrize("field, value, message", [
     ("horizon", float("nan"), "TrackerConfig.horizon must be a finite number > 0, got nan"),
-    ("horizon", "0.03", "TrackerConfig.horizon must be a finite number > 0, got '0.03'"),
+    ("horizon", "0.03", "tracker.horizon has an invalid value '0.03'"),  # a string: named as such
     ("horizon", -1.0, "TrackerConfig.horizon must be a finite number > 0, got -1.0"),
     ("stop_time", 0.0, "TrackerConfig.stop_time must be a finite number > 0, got 0.0"),
     ("lookahead", 5.0, "tracker.lookahead must be between 0 and 0.2 s, got 5"),
