@@ -110,6 +110,8 @@ def tunable_parameters(config: TrackerConfig | None = None) -> tuple[str, ...]:
     Returns:
         The names, in PyTree order.
     """
+    if config is not None and not isinstance(config, TrackerConfig):
+        raise TypeError(f"config must be a phjax.TrackerConfig, got {type(config).__name__}")
     return tuple(_names(_leaf_paths(TrackerConfig() if config is None else config)))
 
 

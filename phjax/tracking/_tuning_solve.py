@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
@@ -291,6 +292,9 @@ def tune_tracker(
     Raises:
         ValueError: bad arguments, or a non-finite loss or gradient at the start.
     """
+    # checked before the recordings are prepared (seconds of work); 1.5 ran a full tuning
+    if isinstance(max_steps, bool) or not isinstance(max_steps, numbers.Integral) or max_steps < 1:
+        raise ValueError(f"max_steps must be an integer >= 1, got {max_steps!r}")
     if isinstance(recordings, TuningData):
         if prepare_kwargs:
             raise ValueError(f"unexpected arguments {sorted(prepare_kwargs)} with prepared "
@@ -298,8 +302,6 @@ def tune_tracker(
         data = recordings
     else:
         data = prepare_recordings(recordings, **prepare_kwargs)
-    if max_steps < 1:
-        raise ValueError(f"max_steps must be >= 1, got {max_steps}")
     base = TrackerConfig() if config is None else config
     problem = make_problem(data, lam=lam, config=base, parameters=parameters,
                            position_weight=position_weight, rotation_weight=rotation_weight,

@@ -5,6 +5,7 @@ import copy
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import assert_one_line_error, run_cli
 
@@ -172,3 +173,21 @@ def test_cli_damaged_config_is_one_line(tmp_path, capsys, text, parts):
     path = _write(tmp_path / "params.json", text)
     rc, out, err = run_cli(capsys, ["demo", "--config", path, "--duration", "1", "--plot", ""])
     assert_one_line_error(rc, out, err, "phjax demo", "params.json", *parts)
+
+
+@pytest.mark.parametrize("max_steps", [1.5, "3", 0, True])
+def test_tune_tracker_checks_max_steps_before_any_work(max_steps):
+    """``max_steps=1.5`` ran a full tuning, ``"3"`` failed with a comparison TypeError, and 0
+    was refused only after the recordings were prepared (seconds): a recording that cannot
+    be prepared (one pose) shows the check comes first."""
+    one_pose = (np.zeros(1), np.zeros((1, 3)), np.array([[1.0, 0, 0, 0]]))
+    with pytest.raises(ValueError, match="max_steps must be an integer >= 1"):
+        pj.tune_tracker([one_pose], max_steps=max_steps)
+
+
+def test_tunable_parameters_of_a_non_config_is_a_type_error():
+    """A string gave ``AttributeError`` from deep inside the PyTree walk."""
+    from phjax.tracking import tunable_parameters
+
+    with pytest.raises(TypeError, match="config must be a phjax.TrackerConfig, got str"):
+        tunable_parameters("x")
