@@ -176,9 +176,10 @@ def evaluate_recording(
 
     Warns:
         phjax.io.TrajectoryWarning: sparse ground truth (see
-        :func:`phjax.motion.resample.warn_sparse_ground_truth`), and one warning naming every
-        table cell that no sample scored although the ground truth has that part (a stream that
-        is NaN everywhere; lags when the render times span no more than the 0.4 s lag search).
+            :func:`phjax.motion.resample.warn_sparse_ground_truth`), and one warning naming
+            every table cell that no sample scored although the ground truth has that part (a
+            stream that is NaN everywhere; lags when the render times span no more than the
+            0.4 s lag search).
     """
     methods = default_methods() if methods is None else list(methods)
     if not methods:

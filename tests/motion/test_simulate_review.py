@@ -6,17 +6,10 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
+
+from test_simulate import _smooth_gt  # the same smooth ground truth (and its compiled sizes)
 
 from phjax.motion.simulate import SensorModel, simulate_measurements, synthetic_head_motion
-
-
-def _smooth_gt(duration=10.0, rate=200.0):
-    t = np.arange(int(duration * rate) + 1) / rate
-    p = np.stack([np.sin(t), np.cos(0.5 * t), 0.1 * t], -1)
-    rv = np.stack([0.3 * np.sin(t), 0.5 * t, 0 * t], -1)
-    q = Rotation.from_rotvec(rv).as_quat()[:, [3, 0, 1, 2]]
-    return t, p, q
 
 
 @pytest.mark.parametrize("field", ["rate", "sigma_p", "sigma_r", "jitter", "latency"])

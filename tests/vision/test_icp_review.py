@@ -24,20 +24,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.spatial.transform import Rotation
+from test_icp import SCHEDULE, H, K, W  # the scene of the ICP tests (and its compiled shapes)
 
 from phjax.vision.icp import (
     OK,
     IcpStatus,
-    PinholeIntrinsics,
     backproject,
     estimate_normals,
     icp_point_to_plane,
     icp_projective,
 )
 
-H, W = 40, 50
-K = PinholeIntrinsics(100.0, 100.0, (W - 1) / 2, (H - 1) / 2)
-SCHEDULE = np.concatenate([np.geomspace(0.1, 0.02, 10), np.full(20, 0.02)])
 OFFSET = np.array([1e4, -1e4, 1e4])
 
 
