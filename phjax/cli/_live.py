@@ -208,6 +208,10 @@ def cmd_live(args) -> int:
     print(f"phjax live: sent {s['sent']} poses in {s['elapsed']:.2f} s "
           f"({_hz(s['sent_hz'])}), {s['frames']} camera frames",
           file=sys.stderr)
+    unread = s["status"].get("NO_FRAME", 0)
+    if unread:
+        print(f"phjax live: {unread} of {s['frames']} camera frames could not be read (a "
+              "missing, damaged or undecodable image) and were lost", file=sys.stderr)
     for url, n in s["send_errors"].items():
         if n:
             print(f"phjax live: {url}: {n} of {s['sent']} packets could not be sent (nothing "
@@ -215,7 +219,7 @@ def cmd_live(args) -> int:
     for url, n in s["out_of_range"].items():
         if n:
             print(f"phjax live: {url}: {n} of {s['sent']} poses not sent: a value beyond what "
-                  "the format holds (OSC float32: 3.4e38)", file=sys.stderr)
+                  "the format holds (OSC float32: 3.4e38) or no orientation", file=sys.stderr)
     if isinstance(lt.source, UdpSource):
         u = lt.source.stats()
         frame = (f"sender's frame interval {1e3 * u['frame_interval']:.1f} ms, "

@@ -196,17 +196,31 @@ def test_process_errors_are_one_line_without_library_logs(tmp_path, model_cache)
     for i in range(1, 5):
         cv2.imwrite(str(folder / "color" / f"{i}.png"), np.full((48, 64, 3), 90, np.uint8))
         cv2.imwrite(str(folder / "depth" / f"{i}.png"), np.full((48, 64), 900, np.uint16))
-    (folder / "color" / "3.png").write_text("not an image")
-    for source in (garbage, folder):
+    damaged = tmp_path / "damaged"  # every colour image unreadable: the worker refuses it
+    (damaged / "color").mkdir(parents=True)
+    (damaged / "depth").symlink_to(folder / "depth")
+    for i in range(1, 5):
+        (damaged / "color" / f"{i}.png").write_text("not an image")
+    (folder / "color" / "3.png").write_text("not an image")  # one unreadable: a lost frame
+
+    def live(source, seconds):
         r = subprocess.run([sys.executable, "-m", "phjax", "live", str(source), "--quiet",
-                            "--duration", "20", "--model-dir", str(model_cache)],
+                            "--duration", str(seconds), "--model-dir", str(model_cache)],
                            capture_output=True, text=True, timeout=300, check=False)
         lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+        assert not [ln for ln in lines if "WARN" in ln or "moov" in ln], r.stderr
+        return r, lines
+
+    for source in (garbage, damaged):
+        r, lines = live(source, 20)
         errors = [ln for ln in lines if "error" in ln.lower()]
         assert r.returncode == 2 and len(errors) == 1, r.stderr
         assert errors[0].startswith("phjax live: error:"), r.stderr
         assert ".py:" not in errors[0] and "FormatError" not in errors[0], r.stderr
-        assert not [ln for ln in lines if "WARN" in ln or "moov" in ln], r.stderr
+    # one damaged image of four is a lost frame (it ended the replay before), said at the end
+    r, lines = live(folder, 4)
+    assert r.returncode == 0, r.stderr
+    assert any("1 of 4 camera frames could not be read" in ln for ln in lines), r.stderr
 
 
 # exec the command with SIGINT ignored (an ignored disposition survives exec; no preexec_fn,
