@@ -155,7 +155,7 @@ def test_live_names_the_dropped_rows_at_the_start(tmp_path, capsys, monkeypatch)
 
         def stats(self):
             return {"sent": 0, "elapsed": 0.0, "sent_hz": float("nan"), "frames": 0,
-                    "send_errors": {}, "out_of_range": {}}
+                    "send_errors": {}, "out_of_range": {}, "status": {}}
 
     monkeypatch.setattr(phjax.live, "LiveTracker", Tracker)
     p = _head()
