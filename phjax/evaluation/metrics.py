@@ -741,6 +741,10 @@ def shift_lag(
 # ----------------------------------------------------------------------------------------------
 
 
+#: the shifts (s) :func:`evaluate` searches for the lag (:func:`shift_lag`) by default
+LAG_RANGE = (-0.1, 0.3)
+
+
 @_over_recordings(times="times", est_pos="rows", est_quat="rows", gt_pos="rows",
                   gt_quat="rows", boundary_times="set")
 def evaluate(
@@ -753,7 +757,7 @@ def evaluate(
     *,
     max_lag: float = 0.5,
     latency_window: float | None = 0.1,
-    lag_range: tuple[float, float] = (-0.1, 0.3),
+    lag_range: tuple[float, float] = LAG_RANGE,
 ) -> dict[str, float]:
     """All metrics of an estimated pose stream against ground truth at the same render times.
 

@@ -36,6 +36,7 @@ from ..tracking.baselines import TUNED
 from ..tracking.kalman import KalmanConfig
 from ..tracking.tracker import TrackerConfig, reconstruct, track
 from ._plot import legend_on_first_labelled
+from .metrics import LAG_RANGE
 from .metrics import evaluate as evaluate_metrics
 
 __all__ = [
@@ -228,7 +229,6 @@ def _warn_unscored(metrics: dict[str, dict], render: np.ndarray, gp: np.ndarray,
     """One :class:`phjax.io.TrajectoryWarning` naming the table cells that no sample scored
     although the ground truth has that part (the table shows ``-`` there): a method whose
     stream is NaN everywhere, or lags on a render span shorter than the lag search range."""
-    import inspect
     import warnings
 
     from ..io import TrajectoryWarning
@@ -243,7 +243,7 @@ def _warn_unscored(metrics: dict[str, dict], render: np.ndarray, gp: np.ndarray,
             missing[name] = cols
     if not missing:
         return
-    lo, hi = inspect.signature(evaluate_metrics).parameters["lag_range"].default
+    lo, hi = LAG_RANGE
     span = float(render[-1] - render[0]) if render.size else 0.0
     why = ""
     if span <= hi - lo and any("lag" in c for cols in missing.values() for c in cols):
