@@ -105,6 +105,11 @@ def positive_float(text: str) -> float:
     return x
 
 
+#: accepted ``--fps`` (``phjax live``, ``phjax track-rgbd``): the frame rate of an RGB-D folder
+#: whose frames carry no timestamps, Hz
+FPS_RANGE = (0.1, 1000.0)
+
+
 def float_between(low: float, high: float, unit: str = ""):
     """argparse type factory: a finite number in ``[low, high]`` (``unit`` ends the message:
     ``must be between 0.05 and 0.5 m, got 'inf'``)."""

@@ -17,6 +17,7 @@ from ._common import (
     check_lookahead,
     file_name,
     finish_background_compilations,
+    FPS_RANGE,
     float_between,
     hold_signals,
     nonnegative_int,
@@ -135,7 +136,7 @@ def cmd_live(args) -> int:
 
         source = open_source(args.source, model_dir=args.model_dir, ipd=args.ipd, fov=args.fov,
                              monocular=args.monocular, head_size=args.head_size,
-                             format=args.format)
+                             format=args.format, fps=args.fps)
         dropped = source.out_of_range_text() if isinstance(source, PoseReplaySource) else ""
         if dropped:
             report(f"phjax live: warning: {args.source.removeprefix('poses:')}: {dropped}: "
@@ -303,6 +304,10 @@ def add_commands(sub) -> None:
                    metavar="DEG",
                    help="monocular sources: horizontal field of view of the camera, degrees "
                    f"(default 60; {FOV_RANGE[0]:g}-{FOV_RANGE[1]:g})")
+    p.add_argument("--fps", type=float_between(*FPS_RANGE, "Hz"), default=None, metavar="FPS",
+                   help="frame rate of an RGB-D folder whose frames carry no timestamps (Biwi, "
+                   "color/ + depth/; default 30; slambook's keyframes: 1); TUM RGB-D folders "
+                   "and video files play at their own timestamps")
     p.add_argument("--model-dir", default=None,
                    help="model cache: YuNet, the head-pose network (default $PHJAX_MODEL_DIR "
                    "or ~/.cache/phjax/models)")

@@ -17,6 +17,8 @@ from ._common import (
     add_rate_argument,
     check_fits,
     check_trajectory_output,
+    FPS_RANGE,
+    float_between,
     model_not_found,
     positive_float,
     positive_int,
@@ -70,7 +72,8 @@ def _check_principal_point(intrinsics, given, source) -> None:
 
 
 def _reader_options(args) -> dict:
-    """``--depth-scale`` / ``--intrinsics`` as reader keywords, for the layouts that take them."""
+    """``--depth-scale`` / ``--intrinsics`` / ``--fps`` as reader keywords, for the layouts
+    that take them."""
     from ..vision.rgbd_io import rgbd_layout
 
     given = {k: v for k, v in (("depth_scale", args.depth_scale),
@@ -81,6 +84,13 @@ def _reader_options(args) -> dict:
             names = " and ".join("--" + k.replace("_", "-") for k in given)
             raise ValueError(f"{names}: only for TUM RGB-D and color/ + depth/ folders; "
                              f"{args.source} is {LAYOUT_NAMES[layout]} with its own calibration")
+    if args.fps is not None:
+        layout = rgbd_layout(args.source)
+        if layout not in ("biwi", "pairs"):
+            what = LAYOUT_NAMES.get(layout, "a TUM RGB-D folder")
+            raise ValueError(f"--fps: only for folders whose frames carry no timestamps (Biwi, "
+                             f"color/ + depth/); {args.source} is {what} with its own times")
+        given["fps"] = args.fps
     return given
 
 
@@ -277,6 +287,10 @@ def add_commands(sub) -> None:
                    "extension; replaced when it exists)")
     p.add_argument("--gt-reference", action="store_true",
                    help="use the ground-truth pose of the first frame as the reference")
+    p.add_argument("--fps", type=float_between(*FPS_RANGE, "Hz"), default=None, metavar="FPS",
+                   help="frame rate of a folder whose frames carry no timestamps (Biwi, color/ "
+                   "+ depth/; default 30; slambook's keyframes: 1); TUM RGB-D folders have "
+                   "their own timestamps")
     p.add_argument("--depth-scale", type=positive_float, default=None, metavar="UNITS",
                    help="depth image units per metre, for TUM RGB-D and color/ + depth/ folders "
                    "(default: the layout's own, TUM 5000, color/ + depth/ 1000; e.g. 1000 for "

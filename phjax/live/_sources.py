@@ -1090,14 +1090,21 @@ class RealSenseSource(Source):
 _POSE_FILE_SUFFIXES = (".txt", ".tum", ".csv", ".json")
 
 
+#: RGB-D folder layouts (:func:`phjax.vision.rgbd_io.rgbd_layout`) whose frames carry no
+#: timestamps: played at ``fps`` (see :func:`open_source`)
+_UNTIMED_LAYOUTS = ("biwi", "pairs")
+
+
 def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: float = 60.0,
                 monocular: str = "net", head_size: float | None = None,
-                worker: bool = True, format: str = "auto") -> Source:
+                worker: bool = True, format: str = "auto", fps: float | None = None) -> Source:
     """A :class:`Source` from the ``SOURCE`` argument of ``phjax live`` (see the module docs).
 
     ``ipd``, ``fov``, ``monocular`` and ``head_size`` apply to webcam / video sources
     (:class:`VideoSource`), ``format`` (a :mod:`phjax.io` format, default by the file's
-    content) to ``poses:FILE``. With ``worker=True`` (default) a source with a vision front-end
+    content) to ``poses:FILE``, ``fps`` (frames per second, default
+    :data:`phjax.vision.rgbd_io.DEFAULT_FOLDER_FPS`) to RGB-D folders whose frames carry no
+    timestamps (Biwi, ``color/`` + ``depth/``); every other source plays at its own times. With ``worker=True`` (default) a source with a vision front-end
     (:attr:`Source.front_end`: synthetic, RGB-D folders, webcam / video, RealSense) is
     returned as a :class:`phjax.live.WorkerSource`: its frames and front-end run in a worker
     process, where they cannot hold the render loop (real clock only; pass ``worker=False``
@@ -1109,13 +1116,16 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
     if worker:
         options = {"model_dir": model_dir, "ipd": ipd, "fov": fov, "monocular": monocular,
                    "head_size": head_size}
-        local = open_source(spec, worker=False, format=format, **options)
+        local = open_source(spec, worker=False, format=format, fps=fps, **options)
         if not local.front_end:
             return local
         from ._worker import WorkerSource
 
-        return WorkerSource(local, str(spec), options)
+        return WorkerSource(local, str(spec), {**options, "fps": fps})
     spec = str(spec)
+    if fps is not None and not Path(spec).is_dir():
+        raise SourceError(f"{spec}: fps / --fps is for RGB-D folders without timestamps (Biwi, "
+                          "color/ + depth/); this source plays at its own times")
     kind, _, arg = spec.partition(":")
     kind = kind.lower() if kind.lower() in ("synthetic", "webcam", "realsense", "udp",
                                             "poses") else kind  # URL schemes: any case
@@ -1143,13 +1153,19 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
             raise SourceError(str(e)) from None
     path = Path(spec)
     if path.is_dir():
-        from ..vision.rgbd_io import open_rgbd
+        from ..vision.rgbd_io import open_rgbd, rgbd_layout
 
         try:
-            seq = open_rgbd(path)
+            untimed = rgbd_layout(path) in _UNTIMED_LAYOUTS
+            if fps is not None and not untimed:
+                raise SourceError(f"{spec}: a TUM RGB-D folder plays at its own timestamps "
+                                  "(rgb.txt); fps / --fps is for Biwi and color/ + depth/ "
+                                  "folders")
+            seq = open_rgbd(path, **({"fps": fps} if fps is not None else {}))
         except ValueError as e:
             raise SourceError(str(e)) from None
         return RGBDReplaySource(seq, model_dir=model_dir, name=f"RGB-D recording {path}")
+
     if path.is_file():
         if path.suffix.lower() in _POSE_FILE_SUFFIXES:  # FFmpeg would "play" a text file
             raise SourceError(f"{spec}: a pose file is replayed with poses:{spec} (a file "

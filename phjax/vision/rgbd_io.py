@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import math
 import os
 import re
 from collections.abc import Callable, Iterator, Sequence
@@ -82,6 +83,7 @@ __all__ = [
     "read_pose_list",
     "read_slambook",
     "SLAMBOOK_INTRINSICS",
+    "DEFAULT_FOLDER_FPS",
     "synthetic_rgbd",
     "open_rgbd",
     "rgbd_layout",
@@ -688,13 +690,33 @@ def _frame_sort_key(fid: str) -> tuple[int, float, str]:
     return (0, float(fid), "") if fid.isdigit() else (1, 0.0, fid)
 
 
-def read_biwi(folder: PathLike, *, fps: float = 30.0) -> RGBDSequence:
+#: the frame rate (Hz) of folders whose frames carry no timestamps (Biwi, ``color/`` +
+#: ``depth/``), as of a video file whose header gives none
+DEFAULT_FOLDER_FPS = 30.0
+
+
+def _check_fps(fps) -> float:
+    """``fps`` as a float, or a ``ValueError`` saying why it cannot time the frames."""
+    try:
+        value = float(fps)
+    except (TypeError, ValueError):
+        raise ValueError(f"fps must be a number of frames per second, got {fps!r}") from None
+    if not (math.isfinite(value) and 0 < value <= 1000):
+        raise ValueError(f"fps must be a frame rate in (0, 1000] Hz, got {fps!r}")
+    return value
+
+
+def read_biwi(folder: PathLike, *, fps: float = DEFAULT_FOLDER_FPS) -> RGBDSequence:
     """All Biwi frames of a folder as a lazily loaded :class:`RGBDSequence`.
 
     Frames are ordered by number (non-numeric ids such as ``unknown`` last); times are
     ``number / fps``, non-numeric frames continue after the last at ``1 / fps`` steps. The
     ground truth (``*_pose.txt`` where present) is given as head poses in the colour camera.
+
+    Raises:
+        ValueError: ``fps`` is not a frame rate in (0, 1000] Hz.
     """
+    fps = _check_fps(fps)
     folder = Path(folder)
     ids = sorted((p.name[len("frame_"):-len("_rgb.png")] for p in folder.glob("frame_*_rgb.png")),
                  key=_frame_sort_key)
@@ -955,12 +977,21 @@ SLAMBOOK_INTRINSICS = (518.0, 519.0, 325.5, 253.5)
 
 
 def read_slambook(folder: PathLike, *, intrinsics: CameraIntrinsics | Sequence[float] =
-                  SLAMBOOK_INTRINSICS, depth_scale: float = 1000.0) -> RGBDSequence:
-    """The slambook2 ``ch5/rgbd`` layout: ``color/N.png``, ``depth/N.pgm``, ``pose.txt``.
+                  SLAMBOOK_INTRINSICS, depth_scale: float = 1000.0,
+                  fps: float = DEFAULT_FOLDER_FPS) -> RGBDSequence:
+    """A ``color/`` + ``depth/`` folder, as the slambook2 ``ch5/rgbd`` layout: ``color/N.png``,
+    ``depth/N.pgm`` (or ``.png``), optional ``pose.txt``.
 
-    Frames are ordered by ``N``, timestamped ``0, 1, 2, ...`` s; ``pose.txt`` (camera-to-world
-    ``T_wc``, metres) becomes the ground truth (kind ``"camera"``).
+    The files carry no timestamps: frames are ordered by ``N`` and timed ``k / fps`` (the
+    ``k``-th frame; 30 Hz by default, as a camera capture). The slambook2 frames are keyframes
+    taken seconds apart, not a video: ``fps=1`` plays them a second apart. ``pose.txt``
+    (camera-to-world ``T_wc``, metres) becomes the ground truth (kind ``"camera"``).
+
+    Raises:
+        RGBDFormatError: a missing depth image, an unreadable first image, a bad ``pose.txt``.
+        ValueError: ``fps`` is not a frame rate in (0, 1000] Hz.
     """
+    fps = _check_fps(fps)
     folder = Path(folder)
     colors = sorted((folder / "color").glob("*.png"), key=lambda p: (len(p.stem), p.stem))
     if not colors:
@@ -977,7 +1008,7 @@ def read_slambook(folder: PathLike, *, intrinsics: CameraIntrinsics | Sequence[f
     if not isinstance(intrinsics, CameraIntrinsics):
         intrinsics = CameraIntrinsics(*[float(v) for v in intrinsics], width=first.shape[1],
                                       height=first.shape[0])
-    times = np.arange(len(pairs), dtype=np.float64)
+    times = np.arange(len(pairs), dtype=np.float64) / fps
     gt = None
     if (folder / "pose.txt").is_file():
         poses = read_pose_list(folder / "pose.txt")
