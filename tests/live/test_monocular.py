@@ -97,7 +97,6 @@ def test_face_model_and_intrinsics():
 #: error within 37 mm at 0.88 m. landmarks: relative median 4.7, max 25.6 deg (large turns
 #: underestimated: five landmarks); absolute ~25 deg at rest (YuNet's nose point 13-20 px
 #: from this face's nose tip).
-@pytest.mark.optimised
 def test_net_rotation_vs_ground_truth(video, model_cache):
     path, intr, gt, gt_pos = video
     res = _run_video(path, MonocularHeadPose(intr, model_dir=model_cache))

@@ -53,7 +53,6 @@ def _software_camera(rs, seq):
     return dev, sensor, profiles, syncer
 
 
-@pytest.mark.optimised
 def test_realsense_source_on_injected_frames(model_cache):  # noqa: F811
     rs = _rs()
     from phjax.vision import synthetic_rgbd_sequence
