@@ -156,10 +156,11 @@ class LiveStream(TrackerStream):
             config = list(config)
             for i in self._noise_leaves:
                 config[i] = config[i] * dt(noise_scale)
+        t_host = self._host_time(t_measured)  # sets the origin when unset
         position, quaternion = self._complete(np.asarray(position, dt), np.asarray(quaternion, dt))
-        t_measured = self._relative(t_measured)  # sets the origin when unset
-        self._leaves = self._late(config, self._leaves, t_measured, self._relative(t_now),
-                                  position, quaternion)
+        now = self._relative(t_now)
+        self._feed(t_host, position, quaternion,
+                   lambda leaves, t, p, q: self._late(config, leaves, t, now, p, q))
 
 
 #: innovation gate of live configs: chi-square, 3 dof, p = 0.001

@@ -48,7 +48,12 @@ from .tracker import (
     tracker_init,
 )
 
-__all__ = ["PARTIAL_FRAMES", "TrackerStream"]
+__all__ = ["PARTIAL_FRAMES", "TIME_STEP_BACK", "TrackerStream"]
+
+#: a host measurement time this far (s) before the stream's latest one breaks its time line
+#: (see :class:`TrackerStream`, "Times that jump"): late measurements within it are applied
+#: at the latest time, as the filter does with any late measurement
+TIME_STEP_BACK = 0.5
 
 #: measurements with one part of the pose (and the other never seen) after which a stream takes
 #: the missing part as fixed (:class:`TrackerStream`): a third of a second at 30 Hz, so that a
@@ -140,6 +145,20 @@ class TrackerStream:
     affected. :func:`phjax.track` reports the never-measured part as NaN
     instead.
 
+    **Times that jump.** The filter applies a late measurement at its latest time, so one
+    host time far in the future (a glitched camera timestamp) used to hold every later
+    measurement at that time: the stream stood still until the source's clock caught up,
+    possibly never. A host time more than :data:`TIME_STEP_BACK` before the latest one
+    breaks the time line. When it fits the time line before the latest measurement, that one
+    was ahead of it and is forgotten (the state goes back to what it was before it). Otherwise
+    it is held until the next measurement: one that continues the old time line drops it,
+    one that continues the new, earlier one means the source's clock went back for good (a
+    restarted or looping source), and the filter starts again from the held measurement (the
+    rendered pose jumps to it). Forgotten and dropped measurements are counted in
+    :attr:`time_glitches`, restarts in :attr:`time_restarts`. Until the next measurement, one
+    far ahead shows the pose at rest where the stream was going. A ``jax.Array`` time is not
+    checked (that would wait for the device).
+
     Example::
 
         stream = phjax.TrackerStream()
@@ -164,6 +183,11 @@ class TrackerStream:
         self._n_segment = len(jax.tree.leaves(state.segment))
         self._seen = [False, False]  # position, orientation measured
         self._partial = 0  # measurements with one part only, while the other is unseen
+        self._origin_given = t is not None
+        #: host measurements forgotten as outlying times, and restarts of the time line
+        #: (class docs, "Times that jump")
+        self.time_glitches = 0
+        self.time_restarts = 0
         self.set_config(config)
         self.state = state
 
@@ -190,7 +214,7 @@ class TrackerStream:
             self._partial = 0
             state = self.state
             kf = _filter_restart_part(self.config, state.filter, filled, position, quaternion)
-            self.state = eqx.tree_at(lambda s: s.filter, state, kf)
+            self._leaves = jax.tree.leaves(eqx.tree_at(lambda s: s.filter, state, kf))
             return position, quaternion
         other_seen = self._seen[0] if q_ok else self._seen[1]
         if p_ok != q_ok and not other_seen:  # one part only, and the other never seen
@@ -228,6 +252,12 @@ class TrackerStream:
             return _tiered_on_leaves(fn, self._config_def, self._state_def, self.dtype)
         return _on_leaves(fn, self._config_def, self._state_def)
 
+    def _host_time(self, t) -> float:
+        """A host measurement time checked as :meth:`_relative` does (setting the origin when
+        unset), as a Python float."""
+        self._relative(t)
+        return float(t)
+
     def _relative(self, t) -> np.floating:
         """A host time relative to :attr:`origin` (set by the first call when unset), in the
         state's dtype."""
@@ -255,6 +285,49 @@ class TrackerStream:
         if treedef != self._state_def:
             raise ValueError("state: not a TrackerState of this stream's filter and structure")
         self._leaves = leaves
+        self._latest = None  # the latest host measurement time: unknown for a given state
+        self._before = None  # (leaves, latest time) before the latest measurement
+        self._pending = None  # (time, position, quaternion) held: far before the time line
+
+    def _feed(self, t_host: float, position, quaternion, step) -> None:
+        """Apply a host measurement at host time ``t_host`` (absolute) with
+        ``step(leaves, t_relative, position, quaternion) -> leaves``, keeping the time line
+        (class docs, "Times that jump")."""
+        rel = t_host - self.origin
+        latest, pending = self._latest, self._pending
+        self._pending = None
+        back = latest is not None and rel < latest - TIME_STEP_BACK
+        if pending is not None:
+            if back and rel >= pending[0] - self.origin - TIME_STEP_BACK:
+                # two measurements on a new, earlier time line: the source's clock went back
+                self.time_restarts += 1
+                self._leaves = jax.tree.leaves(tracker_init(
+                    self.config, self._scalar(pending[0] - self.origin), self.dtype))
+                self._latest = self._before = None
+                self._apply(*pending, step)
+                self._apply(t_host, position, quaternion, step)
+                return
+            self.time_glitches += 1  # the held measurement was off the time line: dropped
+        elif back:
+            before = self._before
+            if before is not None and (before[1] is None or rel >= before[1] - TIME_STEP_BACK):
+                # this one continues the time line before the latest: that one was ahead of it
+                self.time_glitches += 1
+                self._leaves, self._latest, self._before = before[0], before[1], None
+                if before[1] is None and not self._origin_given:
+                    self.origin = t_host  # the outlier was the first: this time is the origin
+                back = False
+        if back:  # far before the time line: held until the next measurement tells
+            self._pending = (t_host, position, quaternion)
+            return
+        self._apply(t_host, position, quaternion, step)
+
+    def _apply(self, t_host: float, position, quaternion, step) -> None:
+        previous = self._leaves
+        rel = t_host - self.origin
+        self._leaves = step(previous, self._scalar(rel), position, quaternion)
+        self._before = (previous, self._latest)
+        self._latest = rel if self._latest is None else max(self._latest, rel)
 
     def update(self, t: Float[ArrayLike, ""], position: Float[ArrayLike, "3"],
                quaternion: Float[ArrayLike, "4"]) -> None:
@@ -271,15 +344,20 @@ class TrackerStream:
                 dtype from :attr:`origin` (inf in the state); a measurement of another shape.
         """
         if not isinstance(t, jax.Array):  # host values: one input signature for every call
-            t, position, quaternion = (self._relative(t), np.asarray(position, self.dtype),
-                                       np.asarray(quaternion, self.dtype))
+            t_host = self._host_time(t)
+            position, quaternion = (np.asarray(position, self.dtype),
+                                    np.asarray(quaternion, self.dtype))
             position, quaternion = self._complete(position, quaternion)
-        else:  # device values: relative to the origin already (0 unless set)
-            self.origin = 0.0 if self.origin is None else self.origin
-            # host measurements (lists, float64) in the stream's dtype: one input signature
-            position, quaternion = (x if isinstance(x, jax.Array) else np.asarray(x, self.dtype)
-                                    for x in (position, quaternion))
+            self._feed(t_host, position, quaternion, functools.partial(
+                self._update, self._config_leaves))
+            return
+        # device values: relative to the origin already (0 unless set)
+        self.origin = 0.0 if self.origin is None else self.origin
+        # host measurements (lists, float64) in the stream's dtype: one input signature
+        position, quaternion = (x if isinstance(x, jax.Array) else np.asarray(x, self.dtype)
+                                for x in (position, quaternion))
         self._leaves = self._update(self._config_leaves, self._leaves, t, position, quaternion)
+        self._latest = self._before = self._pending = None  # a device time: unknown on the host
 
     def measurement_noise(self) -> tuple[float, float]:
         """The position (m) and orientation (rad) measurement stds of the next filter step:

@@ -1,0 +1,103 @@
+"""``TrackerStream`` when host times jump (class docs, "Times that jump").
+
+The filter applies a late measurement at its latest time, so one glitched timestamp far in the
+future used to freeze the stream: every later measurement was applied at that time and the
+render, at the real times, showed one pose until the source's clock caught up (never, for a
+timestamp in the wrong unit). Same stream configuration as ``test_stream_review`` (default
+config, float32, ``fast_start=False``): nothing new to compile.
+"""
+
+import jax
+import numpy as np
+import pytest
+from test_stream_review import _finite, _started, meas  # noqa: F401 - the shared fixture
+
+import phjax as pj
+from phjax.live._runner import LiveStream
+from phjax.tracking.stream import TIME_STEP_BACK
+
+
+def _same_state(a, b):
+    for x, y in zip(jax.tree.leaves(a.state), jax.tree.leaves(b.state)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def _sampled(s, taus):
+    return [np.asarray(x) for x in s.sample(np.asarray(taus))]
+
+
+@pytest.mark.parametrize("jump", [1e3, 2.0, -2.0, -50.0])
+def test_one_outlying_time_is_forgotten(meas, jump):  # noqa: F811
+    """A measurement stamped ``jump`` s off (ahead: a glitched timestamp; back: one from a
+    stale buffer), the stream's clock otherwise steady, is dropped when the next measurement
+    continues the time line: the stream is then exactly the stream that never saw it. (Ahead,
+    it froze the stream before: every later measurement was applied at the glitched time.)"""
+    t, p, q = meas
+    s, ref = _started(meas, 10), _started(meas, 10)
+    s.update(t[10] + jump, p[10], q[10])
+    for k in range(11, 20):
+        s.update(t[k], p[k], q[k])
+        ref.update(t[k], p[k], q[k])
+    assert s.time_glitches == 1 and s.time_restarts == 0
+    _same_state(s, ref)
+    taus = t[19] + np.array([0.0, 0.01, 0.02])
+    assert _finite(s, taus)
+    for got, want in zip(_sampled(s, taus), _sampled(ref, taus)):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_a_glitched_first_time_does_not_become_the_origin(meas):  # noqa: F811
+    """A stream without a given origin takes the first update's time: an outlying first time
+    (1e6 s, say a timestamp in microseconds) would put every later time 1e6 s before the
+    origin, where float32 resolves only 0.06 s. Forgotten, the next time is the origin."""
+    t, p, q = meas
+    s = pj.TrackerStream(fast_start=False)
+    ref = pj.TrackerStream(fast_start=False)
+    s.update(1e6, p[0], q[0])
+    for k in range(12):
+        s.update(100.0 + t[k], p[k], q[k])
+        ref.update(100.0 + t[k], p[k], q[k])
+    assert s.time_glitches == 1 and s.origin == ref.origin == 100.0
+    _same_state(s, ref)
+
+
+def test_a_clock_that_goes_back_for_good_restarts_the_filter(meas):  # noqa: F811
+    """A source whose clock starts again (a restarted camera driver, a file replayed in a
+    loop): the stream used to stand still at the old time line's last pose. Now the filter
+    starts again from the first measurement of the new time line, and the stream follows it."""
+    t, p, q = meas
+    s = _started(meas, 30)
+    offset = np.array([0.2, 0.0, 0.0], np.float32)  # where the restarted source is
+    for k in range(12):
+        s.update(t[k], p[k] + offset, q[k])
+    assert s.time_restarts == 1 and s.time_glitches == 0
+    ref = _started((t, p + offset, q), 12)  # a stream that only saw the new time line
+    _same_state(s, ref)
+    pos = _sampled(s, [t[11]])[0][0]
+    assert np.linalg.norm(pos - (p[11] + offset)) < 0.02
+
+
+def test_late_measurements_within_the_tolerance_are_applied_as_before(meas):  # noqa: F811
+    """Late measurements (a capture thread's reordering) are applied at the latest time, as
+    the filter always did: not a jump of the time line."""
+    t, p, q = meas
+    s = _started(meas, 10)
+    s.update(t[10], p[10], q[10])
+    s.update(t[10] - 0.9 * TIME_STEP_BACK, p[11], q[11])
+    s.update(t[12], p[12], q[12])
+    assert s.time_glitches == s.time_restarts == 0
+    assert _finite(s, t[12] + 0.01)
+
+
+def test_live_stream_late_updates_keep_the_time_line_too(meas):  # noqa: F811
+    t, p, q = meas
+    s = LiveStream(fast_start=False, dtype=np.float32)
+    for k in range(10):
+        s.update_late(t[k], t[k] + 0.02, p[k], q[k])
+    s.update_late(t[10] + 500.0, t[10] + 0.02, p[10], q[10])
+    for k in range(11, 14):
+        s.update_late(t[k], t[k] + 0.02, p[k], q[k])
+    assert s.time_glitches == 1
+    assert _finite(s, t[13] + 0.03)
+    pos = _sampled(s, [t[13] + 0.02])[0][0]
+    assert np.linalg.norm(pos - p[13]) < 0.02
