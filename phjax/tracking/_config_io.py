@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 from pathlib import Path
 
@@ -66,17 +67,31 @@ def _field_names(cls) -> list[str]:
     return [f.name for f in dataclasses.fields(cls)]
 
 
+def _finite_or_null(v):
+    """``v`` (parsed JSON) with every NaN / inf number replaced by ``None``."""
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    if isinstance(v, dict):
+        return {k: _finite_or_null(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_finite_or_null(x) for x in v]
+    return v
+
+
 def config_to_dict(config: TrackerConfig, metadata: dict | None = None) -> dict:
     """JSON-ready dict of every :class:`~phjax.TrackerConfig` and :class:`~phjax.KalmanConfig`
     field (format tag, version, ``"tracker"`` and ``"kalman"`` sections, optional
-    ``"metadata"``)."""
+    ``"metadata"``). Numbers in ``metadata`` that are NaN or infinite (a loss that could not
+    be computed, an RMSE without data) become ``None`` (JSON ``null``): standard JSON has no
+    NaN, and other readers (``jq``, JavaScript, strict parsers) reject the ``NaN`` Python
+    writes."""
     tracker = {n: _jsonable(getattr(config, n))
                for n in _field_names(TrackerConfig) if n not in ("kalman", "imm")}
     kalman = {n: _jsonable(getattr(config.kalman, n)) for n in _field_names(KalmanConfig)}
     out = {"format": CONFIG_FORMAT, "version": CONFIG_VERSION, "tracker": tracker, "kalman": kalman,
            "imm": _imm_to_dict(config.imm)}
     if metadata:
-        out["metadata"] = json.loads(json.dumps(metadata, default=_jsonable))
+        out["metadata"] = _finite_or_null(json.loads(json.dumps(metadata, default=_jsonable)))
     return out
 
 
@@ -244,7 +259,7 @@ def save_config(
     except (TypeError, ValueError) as err:  # json's "Circular reference" for an object
         raise TypeError(f"{path}: metadata is not JSON-serialisable ({err})") from None
     config_from_dict(d, str(path))  # never write a file that load_config rejects
-    text = json.dumps(d, indent=2) + "\n"
+    text = json.dumps(d, indent=2, allow_nan=False) + "\n"
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         tmp.write_text(text, encoding="utf-8")

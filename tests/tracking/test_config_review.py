@@ -191,3 +191,21 @@ def test_tunable_parameters_of_a_non_config_is_a_type_error():
 
     with pytest.raises(TypeError, match="config must be a phjax.TrackerConfig, got str"):
         tunable_parameters("x")
+
+
+def test_non_finite_metadata_is_written_as_json_null(tmp_path):
+    """Metadata holding NaN or inf (a tuning loss that could not be computed, a rotation RMSE of
+    a position-only recording) was written as the bare ``NaN`` / ``Infinity`` Python allows:
+    not JSON, rejected by ``jq``, JavaScript and strict parsers. They are ``null`` now."""
+    meta = {"loss": float("nan"), "rmse": [1.5, float("inf"), np.float32("nan")],
+            "nested": {"lag": -float("inf"), "ok": 2.0}, "steps": 3, "name": "NaN"}
+    path = tuning.save_config(tmp_path / "c.json", pj.TrackerConfig(), metadata=meta)
+    text = path.read_text()
+
+    def strict(token):
+        raise ValueError(f"non-standard JSON number {token}")
+
+    d = json.loads(text, parse_constant=strict)  # what a standard JSON reader accepts
+    assert d["metadata"] == {"loss": None, "rmse": [1.5, None, None],
+                             "nested": {"lag": None, "ok": 2.0}, "steps": 3, "name": "NaN"}
+    assert tuning.load_config(path) == pj.TrackerConfig()
