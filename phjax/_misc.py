@@ -31,6 +31,20 @@ def check_number_fields(obj, rules) -> None:
             raise ValueError(f"{cls}.{name} must be a finite number{rule}, got {value!r}")
 
 
+def check_count(value, name: str, minimum: int = 1, note: str = "") -> int:
+    """``value`` as an ``int`` count (samples, steps, an order), or a ``ValueError`` naming
+    ``name``: an integer value >= ``minimum`` (an ``int``, a NumPy integer, a float or 0-d
+    array with an integer value); never a bool, a string, or a fraction rounded down.
+    ``note`` follows the rule in the message (e.g. ``" (samples per curve)"``)."""
+    try:
+        ok = not isinstance(value, (bool, np.bool_, str, bytes)) and int(value) == value
+    except (TypeError, ValueError, OverflowError):  # None, several values, inf, nan
+        ok = False
+    if not ok or int(value) < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}{note}, got {value!r}")
+    return int(value)
+
+
 POSITIVE = (lambda x: x > 0, " > 0")
 FINITE = (lambda x: x == x, "")
 

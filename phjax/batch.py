@@ -37,6 +37,7 @@ from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike
 
 from ._jit import jit
+from ._misc import check_count
 
 __all__ = [
     "BATCH_AXIS",
@@ -81,9 +82,8 @@ def pad_recordings(*columns: Sequence[ArrayLike], length: int | Sequence[int] | 
         length = [length] * len(columns)
     if len(length) != len(columns):
         raise ValueError(f"length: expected one value per column ({len(columns)}), got {length}")
-    if isinstance(multiple_of, bool) or int(multiple_of) != multiple_of or multiple_of < 1:
-        raise ValueError(f"multiple_of must be an integer >= 1, got {multiple_of!r}")
-    r = -(-n_rec // int(multiple_of)) * int(multiple_of)
+    multiple_of = check_count(multiple_of, "multiple_of")
+    r = -(-n_rec // multiple_of) * multiple_of
     out = []
     for k, (col, n) in enumerate(zip(columns, length)):
         arrs = [np.asarray(a, np.float64) for a in col]

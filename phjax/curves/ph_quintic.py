@@ -67,6 +67,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._jit import filter_jit, jit
 from .._misc import (
     any_traced,
+    check_count,
     check_last_axis,
     dot_last,
     safe_atan2,
@@ -106,9 +107,7 @@ _TABLE = 32  # intervals of the arc-length inversion start table
 
 def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Legendre nodes and weights on [0, 1]."""
-    if isinstance(n, bool) or int(n) != n or n < 1:
-        raise ValueError(f"num_nodes must be an integer >= 1, got {n!r}")
-    n = int(n)
+    n = check_count(n, "num_nodes")
     if n not in _GL_NODES:
         x, w = np.polynomial.legendre.leggauss(n)
         _GL_NODES[n] = ((x + 1) / 2, w / 2)

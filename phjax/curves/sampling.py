@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._jit import jit
-from .._misc import safe_div
+from .._misc import check_count, safe_div
 from ..batch import _leading_sharding, _require_batch_sharded, _sharded_function
 from .ph_quintic import PHQuintic
 
@@ -43,21 +43,9 @@ def _check_curves(curves):
                         f"{type(curves).__name__}")
 
 
-def _is_count(value) -> bool:
-    """Whether ``value`` is an integer (a float or array equal to one too), not a bool."""
-    if isinstance(value, (bool, str)):
-        return False
-    try:
-        return int(value) == value
-    except (TypeError, ValueError, OverflowError):  # None, an array of several values, inf, nan
-        return False
-
-
 def _check_n(n) -> int:
     """``n`` as the number of samples: an integer >= 1, not a float rounded down."""
-    if not _is_count(n) or int(n) < 1:
-        raise ValueError(f"n must be an integer >= 1 (samples per curve), got {n!r}")
-    return int(n)
+    return check_count(n, "n", note=" (samples per curve)")
 
 
 def _sample_impl(curves: PHQuintic, *, n: int, by: str, with_t: bool = True):
@@ -255,10 +243,8 @@ def sample_chunks(
     """
     _check_by(by)
     _check_curves(curves)
-    for name, value in (("chunk", chunk), ("buffers", buffers)):
-        if not _is_count(value) or int(value) < 1:
-            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-    n, chunk, buffers = _check_n(n), int(chunk), int(buffers)
+    chunk, buffers = check_count(chunk, "chunk"), check_count(buffers, "buffers")
+    n = _check_n(n)
     if dtype is not None:
         _check_float_dtype("dtype", jnp.dtype(dtype))
     b = curves.batch_shape

@@ -7,7 +7,6 @@
 from __future__ import annotations
 
 import dataclasses
-import numbers
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
@@ -18,7 +17,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 from .._jit import filter_jit
-from .._misc import any_traced
+from .._misc import any_traced, check_count
 
 from ._tuning_bfgs import _bfgs
 from ._tuning_data import TuningData, prepare_recordings
@@ -293,8 +292,7 @@ def tune_tracker(
         ValueError: bad arguments, or a non-finite loss or gradient at the start.
     """
     # checked before the recordings are prepared (seconds of work); 1.5 ran a full tuning
-    if isinstance(max_steps, bool) or not isinstance(max_steps, numbers.Integral) or max_steps < 1:
-        raise ValueError(f"max_steps must be an integer >= 1, got {max_steps!r}")
+    max_steps = check_count(max_steps, "max_steps")
     if isinstance(recordings, TuningData):
         if prepare_kwargs:
             raise ValueError(f"unexpected arguments {sorted(prepare_kwargs)} with prepared "

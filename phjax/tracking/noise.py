@@ -50,6 +50,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._jit import jit
+from .._misc import check_count
 from ._noise_core import robust_std, window_residuals
 from .tracker import TrackerConfig
 
@@ -116,8 +117,7 @@ def estimate_measurement_noise(
         raise ValueError(
             f"expected times (n,), positions (n, 3), quaternions (n, 4); got {t.shape}, "
             f"{p.shape}, {q.shape}")
-    if not isinstance(order, int) or order < 1:
-        raise ValueError(f"order must be an integer >= 1, got {order!r}")
+    order = check_count(order, "order")
     n, k = t.shape[0], order
     if n < k + 1:
         raise ValueError(f"need at least order + 1 = {k + 1} samples, got {n}")

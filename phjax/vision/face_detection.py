@@ -73,6 +73,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from .._misc import check_count
 from .features import _require
 
 __all__ = [
@@ -545,9 +546,7 @@ class FaceDetector:
             raise ValueError(f"score_threshold must be a number in [0, 1], got {score_threshold!r}")
         if not _real(nms_threshold) or not 0.0 < float(nms_threshold) <= 1.0:
             raise ValueError(f"nms_threshold must be a number in (0, 1], got {nms_threshold!r}")
-        if (isinstance(top_k, bool) or not isinstance(top_k, (int, np.integer))
-                or int(top_k) < 1):
-            raise ValueError(f"top_k must be an integer >= 1, got {top_k!r}")
+        top_k = check_count(top_k, "top_k")
         self.backend = backend
         self.detect_width = None if detect_width is None else int(detect_width)
         self.score_threshold = float(score_threshold)
