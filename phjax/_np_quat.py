@@ -43,8 +43,16 @@ def np_reflect_z(q: np.ndarray) -> np.ndarray:
 
 
 def np_qnormalize(q: np.ndarray) -> np.ndarray:
-    """Unit quaternion."""
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+    """Unit quaternions (last axis); NaN where a quaternion has no orientation (zero, or not
+    finite), without NumPy's warnings. Scaled by the largest component before the norm, so
+    neither a tiny quaternion (squared norm below the smallest float) nor a huge one (above the
+    largest) becomes a division by zero or by infinity."""
+    q = np.asarray(q)
+    scale = np.max(np.abs(q), axis=-1, keepdims=True)
+    ok = np.isfinite(scale) & (scale > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = q / np.where(ok, scale, 1)
+        return np.where(ok, s / np.linalg.norm(s, axis=-1, keepdims=True), np.nan)
 
 
 def np_rotvec(q: np.ndarray) -> np.ndarray:

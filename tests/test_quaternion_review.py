@@ -101,3 +101,29 @@ def test_degenerate_pairs_stay_finite_and_exact():
         # d slerp / dt at t = 0 is q0 (0, log dq)
         ref_dt = np.asarray(pj.quat_mul(q0, np.concatenate([np.zeros((5, 1)), angles[:, None] / 2 * axis], -1)))
         np.testing.assert_allclose(np.asarray(g_t, np.float64)[:, 0, 0], ref_dt, atol=10 * tol)
+
+
+def test_numpy_normalisation_of_tiny_huge_zero_and_non_finite_quaternions():
+    """``np_qnormalize`` (metrics, baselines, the head-pose front-ends, every live output)
+    divided by the plain norm: a quaternion of 1e-200 or 1e200 (squared norm out of float64's
+    range) became NaN / zero with a NumPy warning. Scaled first, they are unit quaternions;
+    zero and non-finite ones are NaN, without a warning."""
+    import warnings
+
+    from phjax._np_quat import np_qnormalize
+
+    rng = np.random.default_rng(5)
+    u = rng.normal(size=(6, 4))
+    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for scale in (1e-200, 1e-5, 1.0, 3e7, 1e200):
+            np.testing.assert_allclose(np_qnormalize(scale * u), u, rtol=1e-14, atol=1e-15)
+        bad = np.array([[0.0, 0, 0, 0], [np.nan, 0, 0, 1], [np.inf, 0, 0, 0], [1.0, -np.inf, 0, 0]])
+        assert np.isnan(np_qnormalize(bad)).all()
+        mixed = np_qnormalize(np.stack([u[0], bad[0]]))
+        np.testing.assert_allclose(mixed[0], u[0], rtol=1e-15)
+        assert np.isnan(mixed[1]).all()
+        f32 = np_qnormalize(u.astype(np.float32) * np.float32(1e-30))
+        assert f32.dtype == np.float32
+        np.testing.assert_allclose(f32, u, rtol=2e-6, atol=1e-7)

@@ -50,6 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._np_quat import np_qnormalize
 from ._url import url_extras, url_options, url_port
 
 __all__ = [
@@ -80,14 +81,9 @@ class OutputError(ValueError):
 
 
 def _unit(quaternion) -> np.ndarray:
-    """``quaternion`` (``(4,)``) scaled to unit norm; NaN when it has no orientation (zero or
-    not finite). The norm is ``math.hypot``'s: neither a tiny nor a huge quaternion (whose
-    squared norm leaves float64's range) becomes a division by zero or the identity."""
-    q = np.asarray(quaternion, np.float64)
-    n = math.hypot(*q.tolist())
-    if not (0.0 < n < math.inf):
-        return np.full(4, np.nan)
-    return q / n
+    """``quaternion`` (``(4,)``) as a float64 unit quaternion; NaN when it has no orientation
+    (zero or not finite; :func:`phjax._np_quat.np_qnormalize`)."""
+    return np_qnormalize(np.asarray(quaternion, np.float64))
 
 
 def opentrack_values(position, quaternion) -> np.ndarray:

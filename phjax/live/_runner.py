@@ -77,7 +77,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._live_defaults import LIVE_NOISE_WINDOW
-from .._np_quat import np_qconj, np_qmul
+from .._np_quat import np_qconj, np_qmul, np_qnormalize
 from ..tracking.kalman import KalmanConfig
 from ..tracking.stream import TrackerStream, _wait_optimised
 from ..tracking.tracker import TrackerConfig, _stream_filter, _update
@@ -617,7 +617,7 @@ class LiveTracker:
             q = np_qmul(qi, q)
             d = p - pc
             p = _rotate(qi, d)
-        q = q / np.linalg.norm(q)
+        q = np_qnormalize(q)  # finite and non-zero here: the held or the centred pose
         ts = t_k - self.t0
         for out in self._outputs:
             out.send(ts, p, q)

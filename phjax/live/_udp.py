@@ -49,7 +49,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .._np_quat import np_axis_quat, np_qmul
+from .._np_quat import np_axis_quat, np_qmul, np_qnormalize
 from ._sources import MAX_POSITION_M, Measurement, Source, SourceError
 from ._url import url_extras, url_options, url_port
 
@@ -111,7 +111,7 @@ def opentrack_pose(values) -> tuple[np.ndarray, np.ndarray]:
     # user axes (forward, up, right) = (-z, -y, -x) of the camera: R_U(-yaw) R_R(pitch)
     # R_F(-roll) in user coordinates is R_y(yaw) R_x(-pitch) R_z(roll) in camera coordinates
     q = np_qmul(np_qmul(np_axis_quat(1, yaw), np_axis_quat(0, -pitch)), np_axis_quat(2, roll))
-    q = q / np.linalg.norm(q)
+    q = np_qnormalize(q)
     return position, (-q if q[0] < 0 else q)
 
 
