@@ -23,31 +23,12 @@ import numpy as np
 from .imm import IMMConfig
 from .kalman import KalmanConfig
 from .models import ConstantAcceleration, ConstantVelocity
+from ._config_ranges import CONFIG_RANGES
 from .tracker import TrackerConfig
 
 #: ``"format"`` tag and version of the JSON written by :func:`save_config`.
 CONFIG_FORMAT = "phjax.TrackerConfig"
 CONFIG_VERSION = 1
-
-#: Range ``(low, high)`` of each float field of a configuration file (``"imm.log_q"``: every
-#: motion model's ``log_q``). Measured on the float32 stream: ten times beyond ``high`` (or
-#: below ``low``) gives NaN poses for some field (e.g. a measurement std of 1e12, a horizon of
-#: 1e30, ``log_q`` 60), at these bounds every field alone gives finite poses.
-_POSITIVE = (1e-12, 1e6)
-CONFIG_RANGES = {
-    **{f"tracker.{n}": _POSITIVE for n in ("horizon", "stop_time")},
-    "tracker.coast_time": (0.0, 1e6),
-    "tracker.lookahead": (-1e6, 1e6),
-    "tracker.adapt": (-20.0, 20.0),
-    "tracker.noise_window": (0, 1_000_000),
-    **{f"kalman.{n}": _POSITIVE for n in (
-        "pos_process_noise", "pos_meas_noise", "rot_process_noise", "rot_meas_noise",
-        "init_pos_vel_std", "init_pos_acc_std", "init_rot_vel_std")},
-    **{f"imm.{n}": _POSITIVE for n in (
-        "pos_meas_noise", "rot_meas_noise", "init_pos_vel_std", "init_pos_acc_std",
-        "init_rot_vel_std")},
-    "imm.log_q": (-50.0, 50.0),
-}
 
 #: fields of a configuration file that hold a string (all others hold numbers, true / false
 #: or null)

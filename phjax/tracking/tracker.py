@@ -60,6 +60,7 @@ from ..io import TrajectoryWarning
 from .._sizes import unpad_rows
 from . import _exported
 from ._batch import run_batch
+from ._config_ranges import CONFIG_RANGES, out_of_range
 from ._noise_core import NoiseMonitor, noise_monitor_init, noise_monitor_push, noise_monitor_std
 from ._shapes import bounded_cache, pad_recording
 from .imm import IMMConfig, imm_init, imm_predict_pose, imm_step, imm_uninitialized
@@ -733,7 +734,10 @@ def complete_one_part(positions: np.ndarray, quaternions: np.ndarray):
 
 
 def check_config(config) -> TrackerConfig:
-    """``TypeError`` (outside jit) unless ``config`` is a :class:`TrackerConfig` or ``None``.
+    """``TypeError`` (outside jit) unless ``config`` is a :class:`TrackerConfig` or ``None``;
+    ``ValueError`` naming the first concrete field outside its range
+    (:data:`phjax.tracking.tuning.CONFIG_RANGES`, the ranges of configuration files),
+    beyond which the stream gives NaN poses (a measurement std of 1e30 m did, silently).
 
     Returns:
         ``config``, or ``TrackerConfig()`` for ``None`` (passed to the jitted cores as
@@ -745,7 +749,15 @@ def check_config(config) -> TrackerConfig:
                 if isinstance(config, dict) else "")
         raise TypeError(f"config must be a phjax.TrackerConfig{hint}, got "
                         f"{type(config).__name__}")
-    return TrackerConfig() if config is None else config
+    if config is None:
+        return TrackerConfig()
+    bad = out_of_range(config)
+    if bad:
+        field, key, value = bad[0]
+        low, high = CONFIG_RANGES[key]
+        raise ValueError(f"TrackerConfig.{field} = {value!r} is out of range [{low:g}, "
+                         f"{high:g}] (beyond it the tracker outputs NaN poses)")
+    return config
 
 
 def _run_traced(core, config, times, positions, quaternions, render_times, dtype):
@@ -841,8 +853,9 @@ def track(
     :func:`tracker_sample` at each render time: the output at ``tau`` uses only measurements
     with ``t <= tau``. Inputs are padded to a size class (the next power of two of ``N`` and
     of ``M``, :mod:`phjax.tracking._shapes`), so recordings of different lengths in one class
-    share one compiled program and the results equal the unpadded ones; at most four classes
-    stay compiled (more would exhaust the process's memory mappings, see
+    share one compiled program and the results equal the unpadded ones; at most
+    :data:`~phjax.tracking._shapes.MAX_COMPILED_SHAPES` (16) classes and configuration
+    structures stay compiled (more would exhaust the process's memory mappings, see
     :func:`phjax.tracking._shapes.bounded_cache`).
 
     **Batches** (leading axes ``B``, one compiled program for the whole batch): recordings
@@ -880,6 +893,12 @@ def track(
     Returns:
         ``(positions (*B, M, 3), quaternions (*B, M, 4))``; NaN before the first valid
         measurement (and at padded render times).
+
+    Raises:
+        TypeError: ``config`` is not a :class:`TrackerConfig`.
+        ValueError: a config field outside its range
+            (:data:`phjax.tracking.tuning.CONFIG_RANGES`; not checked when traced), or
+            recording arrays of the wrong shapes, no measurement, non-finite times.
     """
     config = check_config(config)
     if any_traced(times, positions, quaternions, render_times):

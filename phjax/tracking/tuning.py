@@ -75,6 +75,7 @@ Later calls with the same data shapes and parameter names reuse it.
 # and _config_io (JSON). This module is the public face and keeps the documentation.
 from ._config_io import (
     CONFIG_FORMAT,
+    CONFIG_RANGES,
     CONFIG_VERSION,
     config_from_dict,
     config_to_dict,
@@ -96,6 +97,7 @@ from ._tuning_stream import stream_metrics
 __all__ = [
     "DEFAULT_PARAMETERS",
     "CONFIG_FORMAT",
+    "CONFIG_RANGES",
     "CONFIG_VERSION",
     "TuningData",
     "TuningProblem",

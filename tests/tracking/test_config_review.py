@@ -209,3 +209,46 @@ def test_non_finite_metadata_is_written_as_json_null(tmp_path):
     assert d["metadata"] == {"loss": None, "rmse": [1.5, None, None],
                              "nested": {"lag": None, "ok": 2.0}, "steps": 3, "name": "NaN"}
     assert tuning.load_config(path) == pj.TrackerConfig()
+
+
+@pytest.mark.parametrize("make, field", [
+    (lambda: pj.TrackerConfig(imm=None, kalman=pj.KalmanConfig(pos_meas_noise=1e30)),
+     r"TrackerConfig\.kalman\.pos_meas_noise = 1e\+30 is out of range \[1e-12, 1e\+06\]"),
+    (lambda: pj.TrackerConfig(horizon=1e30), r"TrackerConfig\.horizon = 1e\+30"),
+    (lambda: pj.TrackerConfig(imm=IMMConfig(position_models=(ConstantVelocity(log_q=60.0),),
+                                            rotation_models=(ConstantVelocity(log_q=-5.0),))),
+     r"TrackerConfig\.imm\.position_models\[0\]\.log_q = 60\.0 is out of range \[-50, 50\]"),
+])
+def test_configs_built_in_python_obey_the_file_ranges(make, field, tmp_path):
+    """The ranges of configuration files (CONFIG_RANGES: beyond them the float32 stream gives
+    NaN poses) held for files only: ``track`` with a measurement std of 1e30 m built in Python
+    rendered every position as NaN without a word. ``track``,
+    ``reconstruct`` and ``TrackerStream`` now refuse such a config, naming the field."""
+    t = np.arange(30) / 30.0
+    p, q = np.zeros((30, 3)), np.tile([1.0, 0, 0, 0], (30, 1))
+    cfg = make()
+    for call in (lambda: pj.track(t, p, q, t, config=cfg),
+                 lambda: pj.reconstruct(t, p, q, t, config=cfg),
+                 lambda: pj.TrackerStream(cfg)):
+        with pytest.raises(ValueError, match=field):
+            call()
+    with pytest.raises(ValueError, match="out of range"):  # and the file, as before
+        tuning.save_config(tmp_path / "c.json", cfg)
+
+
+def test_the_range_check_skips_traced_configs():
+    """Inside ``jax.grad`` the config's values are traced: the check leaves them to the caller
+    (gradient tuning steps through values the host never sees)."""
+    import jax
+
+    from phjax.tracking._config_ranges import out_of_range
+
+    seen = []
+
+    def f(h):
+        seen.append(out_of_range(pj.TrackerConfig(horizon=h)))
+        return h
+
+    jax.grad(f)(1e30)
+    assert seen == [[]]
+    assert [b[0] for b in out_of_range(pj.TrackerConfig(horizon=1e30))] == ["horizon"]
