@@ -292,42 +292,43 @@ class TrackerStream:
     def _feed(self, t_host: float, position, quaternion, step) -> None:
         """Apply a host measurement at host time ``t_host`` (absolute) with
         ``step(leaves, t_relative, position, quaternion) -> leaves``, keeping the time line
-        (class docs, "Times that jump")."""
+        (class docs, "Times that jump"). The state is replaced once, at the end: a render
+        thread never sees an intermediate one (a restarted filter before its first update
+        renders NaN)."""
         rel = t_host - self.origin
-        latest, pending = self._latest, self._pending
-        self._pending = None
+        leaves, latest, before = self._leaves, self._latest, self._before
+        pending, self._pending = self._pending, None
         back = latest is not None and rel < latest - TIME_STEP_BACK
         if pending is not None:
             if back and rel >= pending[0] - self.origin - TIME_STEP_BACK:
                 # two measurements on a new, earlier time line: the source's clock went back
                 self.time_restarts += 1
-                self._leaves = jax.tree.leaves(tracker_init(
+                leaves = jax.tree.leaves(tracker_init(
                     self.config, self._scalar(pending[0] - self.origin), self.dtype))
-                self._latest = self._before = None
-                self._apply(*pending, step)
-                self._apply(t_host, position, quaternion, step)
-                return
-            self.time_glitches += 1  # the held measurement was off the time line: dropped
-        elif back:
-            before = self._before
-            if before is not None and (before[1] is None or rel >= before[1] - TIME_STEP_BACK):
-                # this one continues the time line before the latest: that one was ahead of it
-                self.time_glitches += 1
-                self._leaves, self._latest, self._before = before[0], before[1], None
-                if before[1] is None and not self._origin_given:
-                    self.origin = t_host  # the outlier was the first: this time is the origin
+                leaves, latest, before = self._step(leaves, None, *pending, step)
                 back = False
+            else:
+                self.time_glitches += 1  # the held measurement was off the time line: dropped
+        elif back and before is not None and (before[1] is None
+                                              or rel >= before[1] - TIME_STEP_BACK):
+            # this one continues the time line before the latest: that one was ahead of it
+            self.time_glitches += 1
+            leaves, latest, before = before[0], before[1], None
+            if latest is None and not self._origin_given:
+                self.origin = t_host  # the outlier was the first: this time is the origin
+            back = False
         if back:  # far before the time line: held until the next measurement tells
             self._pending = (t_host, position, quaternion)
-            return
-        self._apply(t_host, position, quaternion, step)
+        else:
+            leaves, latest, before = self._step(leaves, latest, t_host, position, quaternion,
+                                                step)
+        self._leaves, self._latest, self._before = leaves, latest, before
 
-    def _apply(self, t_host: float, position, quaternion, step) -> None:
-        previous = self._leaves
+    def _step(self, leaves, latest, t_host: float, position, quaternion, step):
+        """``(new leaves, new latest time, (leaves, latest))`` of one update."""
         rel = t_host - self.origin
-        self._leaves = step(previous, self._scalar(rel), position, quaternion)
-        self._before = (previous, self._latest)
-        self._latest = rel if self._latest is None else max(self._latest, rel)
+        new = step(leaves, self._scalar(rel), position, quaternion)
+        return new, (rel if latest is None else max(latest, rel)), (leaves, latest)
 
     def update(self, t: Float[ArrayLike, ""], position: Float[ArrayLike, "3"],
                quaternion: Float[ArrayLike, "4"]) -> None:
