@@ -1104,7 +1104,8 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
     (:class:`VideoSource`), ``format`` (a :mod:`phjax.io` format, default by the file's
     content) to ``poses:FILE``, ``fps`` (frames per second, default
     :data:`phjax.vision.rgbd_io.DEFAULT_FOLDER_FPS`) to RGB-D folders whose frames carry no
-    timestamps (Biwi, ``color/`` + ``depth/``); every other source plays at its own times. With ``worker=True`` (default) a source with a vision front-end
+    timestamps (Biwi, ``color/`` + ``depth/``; every other source plays at its own times).
+    With ``worker=True`` (default) a source with a vision front-end
     (:attr:`Source.front_end`: synthetic, RGB-D folders, webcam / video, RealSense) is
     returned as a :class:`phjax.live.WorkerSource`: its frames and front-end run in a worker
     process, where they cannot hold the render loop (real clock only; pass ``worker=False``
@@ -1156,8 +1157,7 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
         from ..vision.rgbd_io import open_rgbd, rgbd_layout
 
         try:
-            untimed = rgbd_layout(path) in _UNTIMED_LAYOUTS
-            if fps is not None and not untimed:
+            if fps is not None and rgbd_layout(path) not in _UNTIMED_LAYOUTS:
                 raise SourceError(f"{spec}: a TUM RGB-D folder plays at its own timestamps "
                                   "(rgb.txt); fps / --fps is for Biwi and color/ + depth/ "
                                   "folders")
@@ -1165,7 +1165,6 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
         except ValueError as e:
             raise SourceError(str(e)) from None
         return RGBDReplaySource(seq, model_dir=model_dir, name=f"RGB-D recording {path}")
-
     if path.is_file():
         if path.suffix.lower() in _POSE_FILE_SUFFIXES:  # FFmpeg would "play" a text file
             raise SourceError(f"{spec}: a pose file is replayed with poses:{spec} (a file "
