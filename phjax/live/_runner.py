@@ -157,10 +157,10 @@ class LiveStream(TrackerStream):
             for i in self._noise_leaves:
                 config[i] = config[i] * dt(noise_scale)
         t_host = self._host_time(t_measured)  # sets the origin when unset
-        position, quaternion = self._complete(np.asarray(position, dt), np.asarray(quaternion, dt))
-        now = self._relative(t_now)
-        self._feed(t_host, position, quaternion,
-                   lambda leaves, t, p, q: self._late(config, leaves, t, now, p, q))
+        self._relative(t_now)  # checked now; taken relative to the origin when applied
+        position, quaternion = self._complete(*self._host_measurement(position, quaternion))
+        self._feed(t_host, position, quaternion, lambda leaves, t, p, q: self._late(
+            config, leaves, t, self._relative(t_now), p, q))
 
 
 #: innovation gate of live configs: chi-square, 3 dof, p = 0.001

@@ -240,7 +240,7 @@ def save_config(
     except (TypeError, ValueError) as err:  # json's "Circular reference" for an object
         raise TypeError(f"{path}: metadata is not JSON-serialisable ({err})") from None
     config_from_dict(d, str(path))  # never write a file that load_config rejects
-    text = json.dumps(d, indent=2, allow_nan=False) + "\n"
+    text = json.dumps(d, indent=2) + "\n"  # (an infinite gate is written as Infinity)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         tmp.write_text(text, encoding="utf-8")

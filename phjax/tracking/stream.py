@@ -149,15 +149,17 @@ class TrackerStream:
     host time far in the future (a glitched camera timestamp) used to hold every later
     measurement at that time: the stream stood still until the source's clock caught up,
     possibly never. A host time more than :data:`TIME_STEP_BACK` before the latest one
-    breaks the time line. When it fits the time line before the latest measurement, that one
-    was ahead of it and is forgotten (the state goes back to what it was before it). Otherwise
-    it is held until the next measurement: one that continues the old time line drops it,
-    one that continues the new, earlier one means the source's clock went back for good (a
-    restarted or looping source), and the filter starts again from the held measurement (the
-    rendered pose jumps to it). Forgotten and dropped measurements are counted in
-    :attr:`time_glitches`, restarts in :attr:`time_restarts`. Until the next measurement, one
-    far ahead shows the pose at rest where the stream was going. A ``jax.Array`` time is not
-    checked (that would wait for the device).
+    breaks the time line. When the latest measurement had jumped more than that ahead of the
+    one before it and this one continues the time line before the jump, the latest is
+    forgotten (the state goes back to what it was before it). Otherwise this one is held
+    until the next measurement: one that continues the old time line drops it (a late or
+    stale frame), one that continues the new, earlier one means the source's clock went back
+    for good (a restarted or looping source), and the filter starts again from the held
+    measurement (the rendered pose jumps to it; without a given ``t`` the origin moves to
+    it). Forgotten and dropped measurements are counted in :attr:`time_glitches`, restarts
+    in :attr:`time_restarts` (a first measurement that the next two contradict is a glitch).
+    Until the next measurement, one far ahead shows the pose at rest where the stream was
+    going. A ``jax.Array`` time is not checked (that would wait for the device).
 
     Example::
 
@@ -258,6 +260,16 @@ class TrackerStream:
         self._relative(t)
         return float(t)
 
+    def _host_measurement(self, position, quaternion) -> tuple[np.ndarray, np.ndarray]:
+        """Host position and quaternion in the stream's dtype, their shapes checked here (a
+        measurement held by the time line is applied later, see :meth:`_feed`)."""
+        position, quaternion = (np.asarray(position, self.dtype),
+                                np.asarray(quaternion, self.dtype))
+        for name, x, shape in (("position", position, (3,)), ("quaternion", quaternion, (4,))):
+            if x.shape != shape:
+                raise ValueError(f"tracker update: {name} must have shape {shape}, got {x.shape}")
+        return position, quaternion
+
     def _relative(self, t) -> np.floating:
         """A host time relative to :attr:`origin` (set by the first call when unset), in the
         state's dtype."""
@@ -295,30 +307,33 @@ class TrackerStream:
         (class docs, "Times that jump"). The state is replaced once, at the end: a render
         thread never sees an intermediate one (a restarted filter before its first update
         renders NaN)."""
+        tol = TIME_STEP_BACK
         rel = t_host - self.origin
         leaves, latest, before = self._leaves, self._latest, self._before
         pending, self._pending = self._pending, None
-        back = latest is not None and rel < latest - TIME_STEP_BACK
-        if pending is not None:
-            if back and rel >= pending[0] - self.origin - TIME_STEP_BACK:
-                # two measurements on a new, earlier time line: the source's clock went back
-                self.time_restarts += 1
-                leaves = jax.tree.leaves(tracker_init(
-                    self.config, self._scalar(pending[0] - self.origin), self.dtype))
-                leaves, latest, before = self._step(leaves, None, *pending, step)
-                back = False
-            else:
-                self.time_glitches += 1  # the held measurement was off the time line: dropped
-        elif back and before is not None and (before[1] is None
-                                              or rel >= before[1] - TIME_STEP_BACK):
-            # this one continues the time line before the latest: that one was ahead of it
+        back = latest is not None and rel < latest - tol
+        if (back and before is not None and before[1] is not None
+                and latest - before[1] > tol and rel >= before[1] - tol):
+            # the latest measurement jumped ahead of the time line this one continues
             self.time_glitches += 1
-            leaves, latest, before = before[0], before[1], None
-            if latest is None and not self._origin_given:
-                self.origin = t_host  # the outlier was the first: this time is the origin
-            back = False
+            leaves, latest, before, back = before[0], before[1], None, False
+        elif back and pending is not None and rel >= pending[0] - self.origin - tol:
+            # two measurements on a new, earlier time line: the source's clock went back; a
+            # time line of one measurement (the stream's first) was that measurement's glitch
+            if before is not None and before[1] is None:
+                self.time_glitches += 1
+            else:
+                self.time_restarts += 1
+            if not self._origin_given:  # the new time line keeps float32's resolution
+                self.origin = pending[0]
+            leaves = jax.tree.leaves(tracker_init(
+                self.config, self._scalar(pending[0] - self.origin), self.dtype))
+            leaves, latest, before = self._step(leaves, None, *pending, step)
+            pending, back = None, False
+        if pending is not None:
+            self.time_glitches += 1  # held, and the time line went on without it: dropped
         if back:  # far before the time line: held until the next measurement tells
-            self._pending = (t_host, position, quaternion)
+            self._pending = (t_host, np.array(position), np.array(quaternion))
         else:
             leaves, latest, before = self._step(leaves, latest, t_host, position, quaternion,
                                                 step)
@@ -346,8 +361,7 @@ class TrackerStream:
         """
         if not isinstance(t, jax.Array):  # host values: one input signature for every call
             t_host = self._host_time(t)
-            position, quaternion = (np.asarray(position, self.dtype),
-                                    np.asarray(quaternion, self.dtype))
+            position, quaternion = self._host_measurement(position, quaternion)
             position, quaternion = self._complete(position, quaternion)
             self._feed(t_host, position, quaternion, functools.partial(
                 self._update, self._config_leaves))

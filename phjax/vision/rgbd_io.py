@@ -698,7 +698,7 @@ DEFAULT_FOLDER_FPS = 30.0
 def _check_fps(fps) -> float:
     """``fps`` as a float, or a ``ValueError`` saying why it cannot time the frames."""
     try:
-        value = float(fps)
+        value = float(fps) if not isinstance(fps, (bool, np.bool_)) else math.nan
     except (TypeError, ValueError):
         raise ValueError(f"fps must be a number of frames per second, got {fps!r}") from None
     if not (math.isfinite(value) and 0 < value <= 1000):

@@ -40,7 +40,7 @@ def test_a_pairs_folder_is_timed_at_30_hz_unless_told():
     assert keyframes[4].timestamp == 4.0
 
 
-@pytest.mark.parametrize("fps", [0, -30, float("nan"), float("inf"), 1001, "fast", None])
+@pytest.mark.parametrize("fps", [0, -30, float("nan"), float("inf"), 1001, "fast", None, True])
 def test_a_frame_rate_that_cannot_time_frames_is_refused(tmp_path, fps):
     folder = _pairs(tmp_path / "pairs", 2)
     with pytest.raises(ValueError, match=r"^fps must be a"):

@@ -209,6 +209,11 @@ def test_non_finite_metadata_is_written_as_json_null(tmp_path):
     assert d["metadata"] == {"loss": None, "rmse": [1.5, None, None],
                              "nested": {"lag": None, "ok": 2.0}, "steps": 3, "name": "NaN"}
     assert tuning.load_config(path) == pj.TrackerConfig()
+    # configuration fields keep their round trip: an infinite gate (never reset) saves and loads
+    gated = pj.TrackerConfig(imm=None, kalman=pj.KalmanConfig(gate_nis=9.0,
+                                                              gate_reset=float("inf")))
+    tuning.save_config(tmp_path / "g.json", gated, metadata={"x": float("nan")})
+    assert tuning.load_config(tmp_path / "g.json") == gated
 
 
 @pytest.mark.parametrize("make, field", [

@@ -81,12 +81,16 @@ def test_late_measurements_within_the_tolerance_are_applied_as_before(meas):  # 
     """Late measurements (a capture thread's reordering) are applied at the latest time, as
     the filter always did: not a jump of the time line."""
     t, p, q = meas
-    s = _started(meas, 10)
-    s.update(t[10], p[10], q[10])
+    s, skipped = _started(meas, 10), _started(meas, 10)
+    for stream in (s, skipped):
+        stream.update(t[10], p[10], q[10])
     s.update(t[10] - 0.9 * TIME_STEP_BACK, p[11], q[11])
-    s.update(t[12], p[12], q[12])
+    for stream in (s, skipped):
+        stream.update(t[12], p[12], q[12])
     assert s.time_glitches == s.time_restarts == 0
     assert _finite(s, t[12] + 0.01)
+    # the late frame was used: the stream differs from one that never saw it
+    assert not np.array_equal(np.asarray(s.state.filter.x), np.asarray(skipped.state.filter.x))
 
 
 def test_live_stream_late_updates_keep_the_time_line_too(meas):  # noqa: F811
@@ -101,3 +105,48 @@ def test_live_stream_late_updates_keep_the_time_line_too(meas):  # noqa: F811
     assert _finite(s, t[13] + 0.03)
     pos = _sampled(s, [t[13] + 0.02])[0][0]
     assert np.linalg.norm(pos - p[13]) < 0.02
+
+
+def test_a_frame_just_over_the_tolerance_late_is_dropped_not_the_good_one(meas):  # noqa: F811
+    """At a steady rate a frame 0.52 s late fits the older time line: it made the stream
+    forget the good frame before it (found in review). A late frame is now held and dropped
+    when the next one continues the time line; the good frame stays."""
+    t, p, q = meas
+    s, ref = _started(meas, 10), _started(meas, 10)
+    s.update(t[9] - (TIME_STEP_BACK + 0.02), p[10], q[10])
+    for k in range(10, 16):
+        s.update(t[k], p[k], q[k])
+        ref.update(t[k], p[k], q[k])
+    assert s.time_glitches == 1 and s.time_restarts == 0
+    _same_state(s, ref)
+
+
+def test_two_bad_times_in_a_row_are_both_dropped(meas):  # noqa: F811
+    """One frame 1000 s ahead, then one 100 s behind, then the good frames: the filter
+    restarted from the stale one (and the outlier ahead went uncounted)."""
+    t, p, q = meas
+    s, ref = _started(meas, 10), _started(meas, 10)
+    s.update(t[10] + 1000.0, p[10], q[10])
+    s.update(t[10] - 100.0, p[10], q[10])
+    for k in range(11, 16):
+        s.update(t[k], p[k], q[k])
+        ref.update(t[k], p[k], q[k])
+    assert s.time_glitches == 2 and s.time_restarts == 0
+    _same_state(s, ref)
+
+
+def test_a_held_measurement_is_checked_and_copied(meas):  # noqa: F811
+    """A measurement held by the time line is applied later: its shape is checked when it
+    comes (it raised on the next call, after that call's frame was lost) and it is copied (a
+    camera loop that reuses its buffer overwrote it)."""
+    t, p, q = meas
+    s = _started(meas, 30)
+    with pytest.raises(ValueError, match=r"position must have shape \(3,\), got \(2,\)"):
+        s.update(t[0], p[0][:2], q[0])
+    buf_p, buf_q = p[0].copy(), q[0].copy()
+    s.update(t[0], buf_p, buf_q)  # held: the clock went back
+    buf_p[:], buf_q[:] = 9.0, 0.0  # the camera loop reuses its buffers
+    s.update(t[1], p[1], q[1])  # the new time line: the filter restarts from the held frame
+    assert s.time_restarts == 1
+    ref = _started(meas, 2)
+    _same_state(s, ref)
