@@ -44,15 +44,22 @@ def np_reflect_z(q: np.ndarray) -> np.ndarray:
 
 def np_qnormalize(q: np.ndarray) -> np.ndarray:
     """Unit quaternions (last axis); NaN where a quaternion has no orientation (zero, or not
-    finite), without NumPy's warnings. Scaled by the largest component before the norm, so
-    neither a tiny quaternion (squared norm below the smallest float) nor a huge one (above the
-    largest) becomes a division by zero or by infinity."""
+    finite), without NumPy's warnings. ``q / |q|`` where the squared norm is in the dtype's
+    range (so normal inputs round exactly as a plain division does); a tiny or huge quaternion
+    (squared norm beyond the smallest or largest float) is scaled by its largest component
+    first instead of becoming a division by zero or by infinity."""
     q = np.asarray(q)
-    scale = np.max(np.abs(q), axis=-1, keepdims=True)
-    ok = np.isfinite(scale) & (scale > 0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        s = q / np.where(ok, scale, 1)
-        return np.where(ok, s / np.linalg.norm(s, axis=-1, keepdims=True), np.nan)
+    if not np.issubdtype(q.dtype, np.floating):
+        q = q.astype(np.float64)
+    info = np.finfo(q.dtype)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore", under="ignore"):
+        n = np.linalg.norm(q, axis=-1, keepdims=True)
+        plain = (n > np.sqrt(info.tiny) / info.eps) & (n < np.sqrt(info.max) * info.eps)
+        scale = np.max(np.abs(q), axis=-1, keepdims=True)
+        ok = np.isfinite(scale) & (scale > 0)
+        s = q / np.where(ok & ~plain, scale, 1)
+        ns = np.linalg.norm(s, axis=-1, keepdims=True)
+        return np.where(ok, s / np.where(plain, n, ns), np.nan)
 
 
 def np_rotvec(q: np.ndarray) -> np.ndarray:
