@@ -2,6 +2,8 @@
 
     python experiments/display_frontier.py [--lookaheads 0 20 50] [--seconds 15] [--quick]
                                            [--out results/display_frontier] [--render-phase 0.5]
+                                           [--noise-seed per-recording] [--seed-offset K]
+                                           [--tune-one-euro-dcutoff] [--rooms-test-only]
                                            [--data DIR | --recordings FILE [FILE ...]]
 
 A headset or game shows a frame some 20-50 ms after the pose is read; every method here predicts
@@ -12,7 +14,9 @@ Protocol: that of ``experiments/frontier.py`` (its docstring), at each lookahead
 
 * **Data.** The development set (``experiments/devset.py``): the first ``--seconds`` (15) of each
   development recording (those shorter are skipped), default sensor model (30 Hz, 5 mm, 1 deg,
-  5 % dropouts, seed 0), 120 Hz render clock aligned with the camera clock (render samples at a
+  5 % dropouts; seed 0 for every recording, so all share one noise and dropout draw, unless
+  ``--noise-seed per-recording``; ``--seed-offset K`` draws again), 120 Hz render clock
+  aligned with the camera clock (render samples at a
   frame's instant see that frame; ``--render-phase f`` offsets the render clock by ``f`` render
   periods, ``0.5`` being halfway between, as independent clocks are on average); the first
   second is warm-up and not scored. ``--data DIR``
@@ -120,9 +124,22 @@ def load_recordings(seconds: float, data: Path | None = None,
     return [s[:5] for s in load_devset(max_seconds=seconds, root=data)]
 
 
-def simulate(seqs, seconds: float, quick: bool = False) -> list[dict]:
-    """The default sensor (seed 0) on each window, cut to ``int((seconds - 1) * RATE)`` frames
-    (shorter recordings are skipped, said on stdout), as ``devset.simulated_devset`` does."""
+def noise_seed(name: str, per_recording: bool, offset: int = 0) -> int:
+    """The sensor's seed for recording ``name``: ``offset`` (0) for every recording
+    (``shared``, the protocol of the published tables: every recording then gets the same
+    noise and dropout sequence, so train and test share it), or a CRC-32 of the name plus
+    ``offset`` (``--noise-seed per-recording``: independent draws, fixed per recording;
+    ``--seed-offset`` gives other draws of the same protocol)."""
+    import zlib
+
+    return (zlib.crc32(name.encode()) if per_recording else 0) + offset
+
+
+def simulate(seqs, seconds: float, quick: bool = False,
+             per_recording_seed: bool = False, seed_offset: int = 0) -> list[dict]:
+    """The default sensor on each window (seed :func:`noise_seed`), cut to
+    ``int((seconds - 1) * RATE)`` frames (shorter recordings are skipped, said on stdout), as
+    ``devset.simulated_devset`` does."""
     from phjax.motion.simulate import SensorModel, simulate_measurements
 
     seqs = seqs[::3] if quick else seqs
@@ -131,7 +148,9 @@ def simulate(seqs, seconds: float, quick: bool = False) -> list[dict]:
     for name, kind, t, p, q in seqs:
         t = np.asarray(t, np.float64) - t[0]
         mt, mp, mq = (np.asarray(x, np.float64)
-                      for x in simulate_measurements(0, t, p, q, SensorModel(rate=RATE)))
+                      for x in simulate_measurements(
+                          noise_seed(name, per_recording_seed, seed_offset), t, p, q,
+                          SensorModel(rate=RATE)))
         if mt.shape[0] < n:
             print(f"skip {name}: {t[-1]:.3g} s, {mt.shape[0]} camera frames (needs {n}: "
                   f"{seconds:g} s at {RATE:g} Hz)")
@@ -183,9 +202,15 @@ def _thin(grid, small: bool):
     return grid[::3] if small else grid
 
 
-def baseline_methods(L: float, small: bool = False) -> dict:
+#: One Euro's derivative cutoffs (Hz) swept with ``--tune-one-euro-dcutoff`` (else 1 Hz, the
+#: library default: the cutoff of the velocity the extrapolation uses)
+D_CUTOFFS = (0.3, 1.0, 2.0, 3.0, 5.0)
+
+
+def baseline_methods(L: float, small: bool = False, dcutoff: bool = False) -> dict:
     """name -> (knob grid, knob -> fn(t, p, q, r)), every method predicting ``L`` ahead (the
-    grids of ``frontier.py``; ``small``: every third value, for smoke runs)."""
+    grids of ``frontier.py``; ``small``: every third value, for smoke runs; ``dcutoff``: One
+    Euro's knob is ``(min_cutoff, beta, d_cutoff)`` over :data:`D_CUTOFFS` too)."""
     def kalman(s):
         cfg = KalmanConfig(pos_process_noise=0.03 * s, rot_process_noise=0.3 * s)
         return lambda t, p, q, r: baselines.kalman_extrapolation(t, p, q, r, config=cfg,
@@ -203,9 +228,11 @@ def baseline_methods(L: float, small: bool = False) -> dict:
             lambda a: (lambda t, p, q, r: baselines.alpha_beta(t, p, q, r, alpha=a,
                                                                lookahead=L))),
         "one-euro + extrapolation": (
-            _thin(F.ONE_EURO, small),
+            _thin([(m, b, d) for m, b in F.ONE_EURO for d in D_CUTOFFS] if dcutoff
+                  else F.ONE_EURO, small),
             lambda k: (lambda t, p, q, r: baselines.one_euro_extrapolation(
-                t, p, q, r, min_cutoff=k[0], beta=k[1], lookahead=L))),
+                t, p, q, r, min_cutoff=k[0], beta=k[1], d_cutoff=k[2] if len(k) > 2 else 1.0,
+                lookahead=L))),
         IMM: (_thin(F.IMM_GRID, small), imm),
     }
 
@@ -220,7 +247,7 @@ def tuned_imm(kp, kr) -> IMMConfig:
 
 
 def measure(data, L: float, train: list[int], log=print, small: bool = False,
-            options: dict | None = None) -> dict:
+            options: dict | None = None, dcutoff: bool = False) -> dict:
     """Every method's sweep at lookahead ``L``, its tuned knob and the stream's operating
     point (``small``: thinned grids, for smoke runs; ``options``: ``TrackerConfig`` fields of
     the swept stream, e.g. ``{"reacquire": True}``; the shipped default's row keeps none).
@@ -230,7 +257,7 @@ def measure(data, L: float, train: list[int], log=print, small: bool = False,
     t0 = time.time()
     hold = run(data, baselines.hold, L)
     runs, tuned = {}, {}
-    for name, (grid, make) in baseline_methods(L, small).items():
+    for name, (grid, make) in baseline_methods(L, small, dcutoff).items():
         for k in grid:
             runs[(name, k)] = run(data, make(k), L)
         tuned[name] = tuple(
@@ -536,6 +563,19 @@ def main(argv=None):
                     help="a TrackerConfig field of the swept phjax stream (repeatable; JSON "
                     "values), e.g. reacquire=true or noise_window=60: the options measured on "
                     "the same split as the default (the 'as shipped' row keeps the defaults)")
+    ap.add_argument("--noise-seed", choices=("shared", "per-recording"), default="shared",
+                    help="the simulated sensor's seed: 0 for every recording ('shared', the "
+                    "published tables: train and test then share one noise and dropout "
+                    "sequence) or one per recording from its name ('per-recording')")
+    ap.add_argument("--seed-offset", type=int, default=0,
+                    help="added to every recording's sensor seed: another draw of the noise "
+                    "and dropouts under the same protocol (default 0)")
+    ap.add_argument("--tune-one-euro-dcutoff", action="store_true",
+                    help="tune One Euro's derivative cutoff too (over 0.3-5 Hz; default: fixed "
+                    "at the library's 1 Hz)")
+    ap.add_argument("--rooms-test-only", action="store_true",
+                    help="the 'TUM VI rooms' rows over the test split's rooms only (default: "
+                    "every room, train ones included)")
     src = ap.add_mutually_exclusive_group()
     src.add_argument("--data", type=Path, default=None,
                      help="a folder laid out like ../shared/data (default: ../shared/data)")
@@ -575,6 +615,8 @@ def main(argv=None):
               f"({out / 'results.pkl'}); other options are not used", flush=True)
         data, results, wall = saved["data"], saved["results"], saved["wall"]
         args.seconds, args.render_phase = saved["seconds"], saved.get("render_phase", 0.0)
+        for name, value in saved.get("protocol", {}).items():  # the run's own protocol options
+            setattr(args, name, value)
     else:
         lookaheads = [L / 1e3 for L in args.lookaheads]
         if args.data is not None and not args.data.is_dir():
@@ -586,7 +628,9 @@ def main(argv=None):
 
             print(f"display_frontier.py: error: {format_user_error(e)}", file=sys.stderr)
             raise SystemExit(2) from None
-        recs = simulate(seqs, args.seconds, args.quick and not args.recordings)
+        recs = simulate(seqs, args.seconds, args.quick and not args.recordings,
+                        per_recording_seed=args.noise_seed == "per-recording",
+                        seed_offset=args.seed_offset)
         if len(recs) < 2:
             where = (f" ({len(seqs)} read" + (f" from --data {args.data}: its development-set "
                      "folders, see experiments/devset.py" if not args.recordings else "") + ")")
@@ -596,7 +640,8 @@ def main(argv=None):
     train = [i for i in range(len(data)) if i % 2 == 0]
     splits = {"test": [i for i in range(len(data)) if i % 2 == 1],
               "all": list(range(len(data))),
-              "TUM VI rooms": [i for i, d in enumerate(data) if d["kind"] == "object"]}
+              "TUM VI rooms": [i for i, d in enumerate(data) if d["kind"] == "object"
+                               and (i % 2 == 1 or not args.rooms_test_only)]}
     print(f"{len(data)} recordings; train {[names[i] for i in train]}", flush=True)
     if not args.report_only:
         for part, key in (("positions", "mp"), ("orientations", "mq")):
@@ -610,18 +655,29 @@ def main(argv=None):
             if any(has) and not any(has[i] for i in splits["test"]):
                 print(f"note: no test recording has {part}: the test split's {part} columns "
                       "are '-'", flush=True)
-        results = {L: measure(data, L, train, small=args.smoke, options=options)
+        results = {L: measure(data, L, train, small=args.smoke, options=options,
+                              dcutoff=args.tune_one_euro_dcutoff)
                    for L in lookaheads}
         wall = time.time() - t0
         out.mkdir(parents=True, exist_ok=True)
         with open(out / "results.pkl", "wb") as fh:  # the scores, for --report-only
             pickle.dump({"data": [{k: d[k] for k in ("name", "kind")} for d in data],
                          "results": results, "wall": wall, "seconds": args.seconds,
-                         "render_phase": args.render_phase}, fh)
+                         "render_phase": args.render_phase,
+                         "protocol": {k: getattr(args, k) for k in (
+                             "noise_seed", "seed_offset", "tune_one_euro_dcutoff",
+                             "rooms_test_only")}}, fh)
     text, _ = report(data, results, names, train, splits, args.seconds, wall, args.render_phase)
     if options:
         text = (f"Swept stream with {', '.join(f'{k}={v!r}' for k, v in options.items())} "
                 "(--stream-option).\n\n" + text)
+    protocol = [x for x, on in (("sensor seed per recording", args.noise_seed == "per-recording"),
+                                (f"seed offset {args.seed_offset}", args.seed_offset != 0),
+                                ("One Euro d_cutoff tuned", args.tune_one_euro_dcutoff),
+                                ("TUM VI rooms of the test split only", args.rooms_test_only))
+                if on]
+    if protocol:
+        text = f"Protocol options: {', '.join(protocol)}.\n\n" + text
     (out / "display_frontier.md").write_text(text)
     print(text)
     write_csv(out / "display_frontier.csv", data, results, train)
