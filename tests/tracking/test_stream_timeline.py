@@ -22,6 +22,19 @@ def _same_state(a, b):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
+def _after_outliers(meas, times, resume, stop=16):  # noqa: F811
+    """Two streams started on 10 frames; the first is fed frame 10's pose at each of
+    ``times``, then both frames ``resume .. stop - 1``."""
+    t, p, q = meas
+    s, ref = _started(meas, 10), _started(meas, 10)
+    for bad in times:
+        s.update(bad, p[10], q[10])
+    for k in range(resume, stop):
+        s.update(t[k], p[k], q[k])
+        ref.update(t[k], p[k], q[k])
+    return s, ref
+
+
 def _sampled(s, taus):
     return [np.asarray(x) for x in s.sample(np.asarray(taus))]
 
@@ -32,12 +45,8 @@ def test_one_outlying_time_is_forgotten(meas, jump):  # noqa: F811
     stale buffer), the stream's clock otherwise steady, is dropped when the next measurement
     continues the time line: the stream is then exactly the stream that never saw it. (Ahead,
     it froze the stream before: every later measurement was applied at the glitched time.)"""
-    t, p, q = meas
-    s, ref = _started(meas, 10), _started(meas, 10)
-    s.update(t[10] + jump, p[10], q[10])
-    for k in range(11, 20):
-        s.update(t[k], p[k], q[k])
-        ref.update(t[k], p[k], q[k])
+    t = meas[0]
+    s, ref = _after_outliers(meas, [t[10] + jump], resume=11, stop=20)
     assert s.time_glitches == 1 and s.time_restarts == 0
     _same_state(s, ref)
     taus = t[19] + np.array([0.0, 0.01, 0.02])
@@ -111,12 +120,8 @@ def test_a_frame_just_over_the_tolerance_late_is_dropped_not_the_good_one(meas):
     """At a steady rate a frame 0.52 s late fits the older time line: it made the stream
     forget the good frame before it (found in review). A late frame is now held and dropped
     when the next one continues the time line; the good frame stays."""
-    t, p, q = meas
-    s, ref = _started(meas, 10), _started(meas, 10)
-    s.update(t[9] - (TIME_STEP_BACK + 0.02), p[10], q[10])
-    for k in range(10, 16):
-        s.update(t[k], p[k], q[k])
-        ref.update(t[k], p[k], q[k])
+    t = meas[0]
+    s, ref = _after_outliers(meas, [t[9] - (TIME_STEP_BACK + 0.02)], resume=10)
     assert s.time_glitches == 1 and s.time_restarts == 0
     _same_state(s, ref)
 
@@ -124,13 +129,8 @@ def test_a_frame_just_over_the_tolerance_late_is_dropped_not_the_good_one(meas):
 def test_two_bad_times_in_a_row_are_both_dropped(meas):  # noqa: F811
     """One frame 1000 s ahead, then one 100 s behind, then the good frames: the filter
     restarted from the stale one (and the outlier ahead went uncounted)."""
-    t, p, q = meas
-    s, ref = _started(meas, 10), _started(meas, 10)
-    s.update(t[10] + 1000.0, p[10], q[10])
-    s.update(t[10] - 100.0, p[10], q[10])
-    for k in range(11, 16):
-        s.update(t[k], p[k], q[k])
-        ref.update(t[k], p[k], q[k])
+    t = meas[0]
+    s, ref = _after_outliers(meas, [t[10] + 1000.0, t[10] - 100.0], resume=11)
     assert s.time_glitches == 2 and s.time_restarts == 0
     _same_state(s, ref)
 
