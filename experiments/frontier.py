@@ -120,8 +120,11 @@ def _rmse(x):
 
 def _lag(errs):
     """Lag (s) minimising the RMSE curve over LAGS, refined by a parabola through the mean
-    squared errors, as :func:`phjax.evaluation.metrics.shift_lag` does (on the development
-    streams within 0.001 ms of the RMSE's parabola, used before 2026-11-30)."""
+    squared errors, as :func:`phjax.evaluation.metrics.shift_lag` refines (on the development
+    streams within 0.001 ms of the RMSE's parabola, used before 2026-11-30). Unlike
+    ``shift_lag``, each shift's RMSE (``errs``, from :func:`score`) is over the samples finite
+    at that shift, not over those finite at every shift; a minimum at an end of LAGS is
+    returned as it is."""
     if not np.all(np.isfinite(errs)):
         return math.nan
     i = int(np.argmin(errs))
