@@ -23,7 +23,7 @@ import numpy as np
 from .imm import IMMConfig
 from .kalman import KalmanConfig
 from .models import ConstantAcceleration, ConstantVelocity
-from ._config_ranges import CONFIG_RANGES
+from ._config_ranges import CONFIG_RANGES, out_of_range, range_message  # noqa: F401 (re-exported)
 from .tracker import TrackerConfig
 
 #: ``"format"`` tag and version of the JSON written by :func:`save_config`.
@@ -120,7 +120,6 @@ def _models_from_list(models, key: str, source: str) -> tuple:
             out.append(_MODEL_KINDS[m["model"]](log_q=float(m["log_q"])))
         except (TypeError, ValueError) as err:
             raise ValueError(f"{source}: invalid imm section: {where}: {err}") from None
-        _check_range(f"{where}.log_q", "imm.log_q", m["log_q"], source)
     return tuple(out)
 
 
@@ -142,22 +141,9 @@ def _imm_from_dict(sec, source: str) -> IMMConfig | None:
             raise ValueError(f"{source}: invalid imm section: imm.{name} has an invalid "
                              f"value {value!r}")
     try:
-        imm = IMMConfig(**kw, **sec)
+        return IMMConfig(**kw, **sec)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{source}: invalid imm section: {err}") from None
-    for name, value in sec.items():
-        _check_range(f"imm.{name}", f"imm.{name}", value, source)
-    return imm
-
-
-def _check_range(where: str, key: str, value, source: str) -> None:
-    """``ValueError`` for a (finite, already checked) number outside ``CONFIG_RANGES[key]``."""
-    if key not in CONFIG_RANGES or value is None:
-        return
-    low, high = CONFIG_RANGES[key]
-    if not low <= float(value) <= high:
-        raise ValueError(f"{source}: {where} = {value!r} is out of range [{low:g}, {high:g}] "
-                         "(beyond it the tracker fails or outputs NaN poses)")
 
 
 def config_from_dict(d: dict, source: str = "<dict>") -> TrackerConfig:
@@ -203,13 +189,13 @@ def config_from_dict(d: dict, source: str = "<dict>") -> TrackerConfig:
         config = TrackerConfig(kalman=kalman, imm=None, **sections["tracker"])
     except (TypeError, ValueError) as err:
         raise ValueError(f"{source}: invalid configuration: {err}") from None
-    for key, sec in sections.items():
-        for name, value in sec.items():
-            if not isinstance(value, bool):
-                _check_range(f"{key}.{name}", f"{key}.{name}", value, source)
     # no "imm" section: a file from before the IMM, i.e. the single-model stream
     imm = _imm_from_dict(d.get("imm"), source)
-    return config if imm is None else dataclasses.replace(config, imm=imm)
+    config = config if imm is None else dataclasses.replace(config, imm=imm)
+    bad = out_of_range(config)  # the ranges of configurations built in Python too
+    if bad:
+        raise ValueError(f"{source}: {range_message(*bad[0])}")
+    return config
 
 
 def save_config(

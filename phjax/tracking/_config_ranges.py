@@ -38,7 +38,7 @@ CONFIG_RANGES = {
 def out_of_range(config) -> list[tuple[str, str, object]]:
     """``(field, key, value)`` of every concrete float field of ``config`` (a
     :class:`phjax.TrackerConfig`) outside :data:`CONFIG_RANGES` (``key``: its entry there;
-    ``field``: e.g. ``"kalman.pos_meas_noise"``, ``"imm.position_models[1].log_q"``)."""
+    ``field``: e.g. ``"tracker.horizon"``, ``"imm.position_models[1].log_q"``)."""
     found = []
 
     def check(field, key, value):
@@ -53,7 +53,7 @@ def out_of_range(config) -> list[tuple[str, str, object]]:
     for key in CONFIG_RANGES:
         section, name = key.split(".")
         if section == "tracker":
-            check(name, key, getattr(config, name))
+            check(key, key, getattr(config, name))
         elif section == "kalman":
             check(key, key, getattr(config.kalman, name))
         elif imm is not None and name == "log_q":
@@ -63,3 +63,10 @@ def out_of_range(config) -> list[tuple[str, str, object]]:
         elif imm is not None:
             check(key, key, getattr(imm, name))
     return found
+
+
+def range_message(field: str, key: str, value) -> str:
+    """The one-line reason of an :func:`out_of_range` entry."""
+    low, high = CONFIG_RANGES[key]
+    return (f"{field} = {value!r} is out of range [{low:g}, {high:g}] (beyond it the tracker "
+            "fails or outputs NaN poses)")

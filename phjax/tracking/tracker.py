@@ -60,7 +60,7 @@ from ..io import TrajectoryWarning
 from .._sizes import unpad_rows
 from . import _exported
 from ._batch import run_batch
-from ._config_ranges import CONFIG_RANGES, out_of_range
+from ._config_ranges import out_of_range, range_message
 from ._noise_core import NoiseMonitor, noise_monitor_init, noise_monitor_push, noise_monitor_std
 from ._shapes import bounded_cache, pad_recording
 from .imm import IMMConfig, imm_init, imm_predict_pose, imm_step, imm_uninitialized
@@ -754,9 +754,8 @@ def check_config(config) -> TrackerConfig:
     bad = out_of_range(config)
     if bad:
         field, key, value = bad[0]
-        low, high = CONFIG_RANGES[key]
-        raise ValueError(f"TrackerConfig.{field} = {value!r} is out of range [{low:g}, "
-                         f"{high:g}] (beyond it the tracker outputs NaN poses)")
+        raise ValueError("TrackerConfig." + range_message(field.removeprefix("tracker."), key,
+                                                          value))
     return config
 
 

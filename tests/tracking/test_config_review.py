@@ -256,4 +256,4 @@ def test_the_range_check_skips_traced_configs():
 
     jax.grad(f)(1e30)
     assert seen == [[]]
-    assert [b[0] for b in out_of_range(pj.TrackerConfig(horizon=1e30))] == ["horizon"]
+    assert [b[0] for b in out_of_range(pj.TrackerConfig(horizon=1e30))] == ["tracker.horizon"]
