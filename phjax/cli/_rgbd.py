@@ -74,7 +74,7 @@ def _check_principal_point(intrinsics, given, source) -> None:
 def _reader_options(args) -> dict:
     """``--depth-scale`` / ``--intrinsics`` / ``--fps`` as reader keywords, for the layouts
     that take them."""
-    from ..vision.rgbd_io import rgbd_layout
+    from ..vision.rgbd_io import UNTIMED_LAYOUTS, rgbd_layout
 
     given = {k: v for k, v in (("depth_scale", args.depth_scale),
                                ("intrinsics", args.intrinsics)) if v is not None}
@@ -86,7 +86,7 @@ def _reader_options(args) -> dict:
                              f"{args.source} is {LAYOUT_NAMES[layout]} with its own calibration")
     if args.fps is not None:
         layout = rgbd_layout(args.source)
-        if layout not in ("biwi", "pairs"):
+        if layout not in UNTIMED_LAYOUTS:
             what = LAYOUT_NAMES.get(layout, "a TUM RGB-D folder")
             raise ValueError(f"--fps: only for folders whose frames carry no timestamps (Biwi, "
                              f"color/ + depth/); {args.source} is {what} with its own times")

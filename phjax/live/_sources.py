@@ -1090,11 +1090,6 @@ class RealSenseSource(Source):
 _POSE_FILE_SUFFIXES = (".txt", ".tum", ".csv", ".json")
 
 
-#: RGB-D folder layouts (:func:`phjax.vision.rgbd_io.rgbd_layout`) whose frames carry no
-#: timestamps: played at ``fps`` (see :func:`open_source`)
-_UNTIMED_LAYOUTS = ("biwi", "pairs")
-
-
 def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: float = 60.0,
                 monocular: str = "net", head_size: float | None = None,
                 worker: bool = True, format: str = "auto", fps: float | None = None) -> Source:
@@ -1154,10 +1149,10 @@ def open_source(spec: str, *, model_dir=None, ipd: float | None = None, fov: flo
             raise SourceError(str(e)) from None
     path = Path(spec)
     if path.is_dir():
-        from ..vision.rgbd_io import open_rgbd, rgbd_layout
+        from ..vision.rgbd_io import UNTIMED_LAYOUTS, open_rgbd, rgbd_layout
 
         try:
-            if fps is not None and rgbd_layout(path) not in _UNTIMED_LAYOUTS:
+            if fps is not None and rgbd_layout(path) not in UNTIMED_LAYOUTS:
                 raise SourceError(f"{spec}: a TUM RGB-D folder plays at its own timestamps "
                                   "(rgb.txt); fps / --fps is for Biwi and color/ + depth/ "
                                   "folders")

@@ -84,6 +84,7 @@ __all__ = [
     "read_slambook",
     "SLAMBOOK_INTRINSICS",
     "DEFAULT_FOLDER_FPS",
+    "UNTIMED_LAYOUTS",
     "synthetic_rgbd",
     "open_rgbd",
     "rgbd_layout",
@@ -693,6 +694,8 @@ def _frame_sort_key(fid: str) -> tuple[int, float, str]:
 #: the frame rate (Hz) of folders whose frames carry no timestamps (Biwi, ``color/`` +
 #: ``depth/``), as of a video file whose header gives none
 DEFAULT_FOLDER_FPS = 30.0
+#: the :func:`rgbd_layout` names of those folders: their readers take ``fps``
+UNTIMED_LAYOUTS = ("biwi", "pairs")
 
 
 def _check_fps(fps) -> float:
