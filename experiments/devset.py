@@ -66,29 +66,67 @@ def load_devset(max_seconds: float = 30.0, max_windows: int = 1, root: Path | No
             for w, (name, source) in zip(seqs, sources)]
 
 
-def simulated_devset(seconds: float, quick: bool = False, rate: float = 30.0):
-    """The development set as the frontier studies see it: the first ``seconds`` of each
-    recording (origin at its first sample), measured by the default sensor (seed 0) and cut to
-    ``int((seconds - 1) * rate)`` frames; recordings with fewer frames are skipped (said on
-    stdout); ``quick``: every third recording. Returns dicts with ``name, kind, t, p, q`` (ground
-    truth), ``mt, mp, mq`` (frames) and ``has_pos``, in devset order."""
+#: the simulated sensor's seeding: ``per-recording`` (default) seeds each recording from its name,
+#: so recordings draw independent noise and dropouts; ``shared`` gives every recording the same
+#: seed (the protocol of the tables published before 2026-12-01: train and test then share one
+#: noise and dropout sequence)
+SEEDINGS = ("per-recording", "shared")
+
+
+def sensor_seed(name: str, seeding: str = "per-recording", draw: int = 0) -> int:
+    """The simulated sensor's seed for recording ``name`` in draw ``draw``: a CRC-32 of the name
+    plus ``draw`` (``per-recording``), or ``draw`` for every recording (``shared``)."""
+    import zlib
+
+    if seeding not in SEEDINGS:
+        raise ValueError(f"seeding must be one of {SEEDINGS}, got {seeding!r}")
+    return (zlib.crc32(name.encode()) if seeding == "per-recording" else 0) + int(draw)
+
+
+def simulate_recordings(seqs, seconds: float, rate: float = 30.0, quick: bool = False,
+                        seeding: str = "per-recording", draw: int = 0) -> list[dict]:
+    """Measure ground-truth windows ``(name, kind, t, p, q)`` with the default sensor model at
+    ``rate`` (seed :func:`sensor_seed`), origin at each window's first sample, cut to
+    ``int((seconds - 1) * rate)`` frames; windows with fewer frames are skipped (said on
+    stdout); ``quick``: every third window. Returns dicts with ``name, kind, t, p, q`` (ground
+    truth), ``mt, mp, mq`` (frames) and ``has_pos``, in the order given."""
     from phjax.motion.simulate import SensorModel, simulate_measurements
 
-    seqs = load_devset(max_seconds=seconds)
-    if quick:
-        seqs = seqs[::3]
+    seqs = seqs[::3] if quick else seqs
     n = int((seconds - 1.0) * rate)
     out = []
     for name, kind, t, p, q in seqs:
-        t = t - t[0]
+        t = np.asarray(t, np.float64) - t[0]
         mt, mp, mq = (np.asarray(x, np.float64)
-                      for x in simulate_measurements(0, t, p, q, SensorModel()))
+                      for x in simulate_measurements(sensor_seed(name, seeding, draw), t, p, q,
+                                                     SensorModel(rate=rate)))
         if mt.shape[0] < n:
-            print(f"skip {name}: {mt.shape[0]} frames < {n}")
+            print(f"skip {name}: {t[-1]:.3g} s, {mt.shape[0]} camera frames (needs {n}: "
+                  f"{seconds:g} s at {rate:g} Hz)")
             continue
-        out.append(dict(name=name, kind=kind, t=t, p=p, q=q, mt=mt[:n], mp=mp[:n], mq=mq[:n],
+        out.append(dict(name=name, kind=kind, t=t, p=np.asarray(p, np.float64),
+                        q=np.asarray(q, np.float64), mt=mt[:n], mp=mp[:n], mq=mq[:n],
                         has_pos=bool(np.isfinite(p).any())))
     return out
+
+
+def simulated_devset(seconds: float, quick: bool = False, rate: float = 30.0,
+                     seeding: str = "per-recording", draw: int = 0):
+    """The development set as the frontier studies see it: the first ``seconds`` of each
+    recording through :func:`simulate_recordings` (devset order)."""
+    return simulate_recordings([s[:5] for s in load_devset(max_seconds=seconds)], seconds, rate,
+                               quick, seeding, draw)
+
+
+def add_sensor_arguments(ap) -> None:
+    """``--noise-seed`` and ``--draw``: the sensor-draw options every frontier study shares."""
+    ap.add_argument("--noise-seed", choices=SEEDINGS, default="per-recording",
+                    help="the simulated sensor's seeding: one seed per recording from its name "
+                    "(default: independent noise and dropouts) or 'shared' (seed = draw for "
+                    "every recording, the protocol of the tables before 2026-12-01)")
+    ap.add_argument("--draw", type=int, default=0,
+                    help="added to every recording's sensor seed: another draw of the noise and "
+                    "dropouts under the same protocol (default 0)")
 
 
 if __name__ == "__main__":

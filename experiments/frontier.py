@@ -1,13 +1,15 @@
 """The accuracy / smoothness / lag frontier of every causal method, tuned on half the data.
 
     python experiments/frontier.py [--seconds 15] [--out results/frontier] [--quick]
-                                   [--render-phase 0.5]
+                                   [--render-phase 0.5] [--noise-seed shared] [--draw K]
 
 Protocol (documented tuning procedure, nothing tuned to a target number):
 
 * **Data.** The development set (``experiments/devset.py``): the first ``--seconds`` (15) of each
   of the 17 development recordings (those shorter are skipped) (TUM RGB-D camera, TUM VI hand-held rooms, VR head traces),
-  sampled by the default sensor model (30 Hz, 5 mm, 1 deg, 5 % dropouts, seed 0) and rendered
+  sampled by the default sensor model (30 Hz, 5 mm, 1 deg, 5 % dropouts; each recording its own
+  seed, from its name: ``devset.sensor_seed``; ``--draw K`` draws again, ``--noise-seed shared``
+  gives every recording seed K, the protocol of the tables before 2026-12-01) and rendered
   at 120 Hz. Every window is cut to the same number of frames and render samples (one
   compilation per method); the first second is warm-up and not scored.
 * **Split.** Recordings sorted by name, alternately assigned to *train* (even index) and *test*
@@ -62,7 +64,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from devset import simulated_devset  # noqa: E402
+from devset import add_sensor_arguments, simulated_devset  # noqa: E402
 
 from phjax.evaluation.metrics import rms_jerk_position, rms_jerk_rotation  # noqa: E402
 from phjax.motion.resample import interpolate_poses, snap_to_frames  # noqa: E402
@@ -82,7 +84,8 @@ DATA_VERSION = 3
 
 
 # --------------------------------------------------------------------------------------- data
-def prepare(seconds: float, cache: Path, quick: bool, phase: float = 0.0):
+def prepare(seconds: float, cache: Path, quick: bool, phase: float = 0.0,
+            seeding: str = "per-recording", draw: int = 0):
     """Simulated measurements and ground truth of every recording, cut to common shapes
     (render times offset by ``phase`` render periods from the camera clock)."""
     if cache.exists():
@@ -90,7 +93,7 @@ def prepare(seconds: float, cache: Path, quick: bool, phase: float = 0.0):
         return list(z["data"])
     m = int((seconds - 1.0 - WARMUP - 0.2) * RENDER)
     out = []
-    for rec in simulated_devset(seconds, quick, RATE):
+    for rec in simulated_devset(seconds, quick, RATE, seeding, draw):
         t, p, q, mt = rec["t"], rec["p"], rec["q"], rec["mt"]
         # render samples at a frame's instant see that frame, whatever the rounding
         r = snap_to_frames(mt, mt[0] + WARMUP + (np.arange(m) + phase) / RENDER)
@@ -281,6 +284,7 @@ def main(argv=None):
                     help="BFGS steps of the gradient-tuned IMM stream (0: leave it out)")
     ap.add_argument("--plot-only", action="store_true",
                     help="redraw frontier.png from frontier.csv and tuned.json in --out")
+    add_sensor_arguments(ap)
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -289,8 +293,9 @@ def main(argv=None):
         return 0
     t0 = time.time()
     tag = (f"{args.seconds:g}{'_quick' if args.quick else ''}_phase{args.render_phase:g}"
-           f"_v{DATA_VERSION}")
-    data = prepare(args.seconds, out / f"data_{tag}.npz", args.quick, args.render_phase)
+           f"_{args.noise_seed}{args.draw}_v{DATA_VERSION}")
+    data = prepare(args.seconds, out / f"data_{tag}.npz", args.quick, args.render_phase,
+                   args.noise_seed, args.draw)
     names = [d["name"] for d in data]
     train = [i for i in range(len(data)) if i % 2 == 0]
     test = [i for i in range(len(data)) if i % 2 == 1]

@@ -1,7 +1,7 @@
 """Does *non-linear* prediction beat the IMM at display-time horizons, on the development set?
 
     python experiments/nonlinear_predictor.py [--seconds 15] [--taps 12 24] [--seeds 3]
-        [--out results/nonlinear_predictor] [--quick]
+        [--out results/nonlinear_predictor] [--quick] [--noise-seed shared] [--draw K]
 
 ``docs/frontier.md`` shows that a C1 render stream is bounded by its predictor's error one camera
 period (33 ms) plus the display lookahead ahead, that the IMM extrapolation would have to be some
@@ -10,7 +10,8 @@ fitted on train gets there. This study asks the same of small neural networks.
 
 Protocol (the data, sensor, split and instants of ``predictor_bound.py``, whose functions it
 imports): the first ``--seconds`` of each development recording, the default sensor (30 Hz,
-5 mm, 1 deg, 5 % dropouts, seed 0); recordings sorted by name, alternately train / test. At
+5 mm, 1 deg, 5 % dropouts; a sensor seed per recording, ``--noise-seed`` and ``--draw`` as
+there); recordings sorted by name, alternately train / test. At
 every camera frame ``k`` (after a 1 s warm-up) whose last ``N`` frames all arrived, the target
 is the ground truth ``h`` after the frame, as an offset from the newest measurement (position;
 rotation in the world tangent space at the newest measurement, ``log(g q_k^-1)``). Horizons:
@@ -79,6 +80,7 @@ import numpy as np
 import optax
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from devset import add_sensor_arguments  # noqa: E402
 from predictor_bound import (  # noqa: E402  (also enables jax x64)
     RATE,
     RENDER,
@@ -500,6 +502,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="results/nonlinear_predictor", help="output folder")
     ap.add_argument("--quick", action="store_true",
                     help="every third recording, 8 s, 33 + 0 / 20 ms only, one seed")
+    add_sensor_arguments(ap)
     args = ap.parse_args(argv)
     if min(args.taps) < 6:
         ap.error("--taps must be at least 6")
@@ -510,7 +513,7 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        data = prepare(args.seconds, args.quick)
+        data = prepare(args.seconds, args.quick, args.noise_seed, args.draw)
     print(f"{len(data)} recordings", flush=True)
     rows, log = [], []
     for taps in args.taps:

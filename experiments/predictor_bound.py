@@ -1,6 +1,7 @@
 """How much better can any *linear* predictor get than the IMM, on the development set?
 
     python experiments/predictor_bound.py [--seconds 15] [--taps 6 12 24] [--out results/predictor_bound]
+                                          [--noise-seed shared] [--draw K]
 
 Issue 16 asks for a stream 5 % below the strongest tuned extrapolator; ``frontier.py`` shows that
 a C1 stream on the IMM filter is bounded at 1.015 / 1.025 x (a continuous stream shows, at a
@@ -9,7 +10,8 @@ predictor some 7 % better than the IMM. This study measures how much room linear
 leaves at all.
 
 Protocol (the data of ``frontier.py``): the first ``--seconds`` of each development recording,
-the default sensor (30 Hz, 5 mm, 1 deg, 5 % dropouts, seed 0); recordings sorted by name and
+the default sensor (30 Hz, 5 mm, 1 deg, 5 % dropouts; a seed per recording, ``--draw`` and
+``--noise-seed`` as there); recordings sorted by name and
 split alternately into train / test. At every camera frame ``k`` whose last ``N`` frames all
 arrived, the target is the ground truth ``h`` after the frame (``h`` = 0, 1, 2, 3 render periods
 at 120 Hz: the render phases an extrapolator serves). A linear predictor of ``N`` taps predicts
@@ -46,7 +48,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from devset import simulated_devset  # noqa: E402
+from devset import add_sensor_arguments, simulated_devset  # noqa: E402
 
 from phjax._np_quat import np_qconj, np_qmul, np_rotvec  # noqa: E402
 from phjax.motion.resample import interpolate_poses  # noqa: E402
@@ -110,9 +112,10 @@ def _rms_deg(q, g) -> float:
     return float(np.sqrt(np.mean(e * e)))
 
 
-def prepare(seconds: float, quick: bool):
-    """The frontier's recordings: ground truth and simulated frames, sorted by name."""
-    return sorted(simulated_devset(seconds, quick, RATE), key=lambda d: d["name"])
+def prepare(seconds: float, quick: bool, seeding: str = "per-recording", draw: int = 0):
+    """The frontier's recordings: ground truth and simulated frames (sensor draw
+    :func:`devset.sensor_seed`), sorted by name."""
+    return sorted(simulated_devset(seconds, quick, RATE, seeding, draw), key=lambda d: d["name"])
 
 
 def extrapolations(d, phase: int):
@@ -193,6 +196,7 @@ def main(argv=None) -> int:
                     help="render phases (120 Hz periods after the frame, 0-3)")
     ap.add_argument("--out", default="results/predictor_bound", help="output folder")
     ap.add_argument("--smoke", action="store_true", help="every third recording, 6 s, N = 6")
+    add_sensor_arguments(ap)
     args = ap.parse_args(argv)
     if min(args.taps) < 2:
         ap.error("--taps must be at least 2")
@@ -204,7 +208,7 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        data = prepare(args.seconds, args.smoke)
+        data = prepare(args.seconds, args.smoke, args.noise_seed, args.draw)
     print(f"{len(data)} recordings", flush=True)
     rows = []
     for taps in args.taps:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import itertools
+import math
 import sys
 
 import numpy as np
@@ -495,6 +496,43 @@ def test_display_frontier_smoke_on_named_recordings(tmp_path):
     assert (out / "display_frontier.png").stat().st_size > 20_000
 
 
+def test_display_frontier_over_sensor_draws_agrees_with_each_draw(tmp_path):
+    """With several sensor draws the top table gives, per draw, the numbers of that draw's own
+    report (tuned and scored separately), their mean, and the draws where the target holds;
+    --report-only rebuilds the same table from the saved scores."""
+    import re
+
+    import display_frontier as dfr
+
+    files = [str(shared_path("tum_rgbd_groundtruth", f"{n}-groundtruth.txt"))
+             for n in ("fr1_xyz", "fr1_desk")]
+    out = tmp_path / "df"
+    assert dfr.main(["--smoke", "--draws", "2", "--draw", "5", "--out", str(out),
+                     "--recordings", *files]) == 0
+    top = (out / "display_frontier.md").read_text()
+    assert "sensor draws [5, 6]" in top
+    row = next(line for line in top.splitlines() if line.startswith("| 20 ms | test |"))
+    cells = row.split(" | ")
+    per = re.findall(r"(\d\.\d{3}) \w+", cells[2])  # phjax pos RMSE per draw
+    assert len(per) == 2
+    mean = float(cells[2].split()[0])
+    assert mean == pytest.approx(np.mean([float(v) for v in per]), abs=1.1e-3)
+    met = 0
+    for k, v in zip((5, 6), per):
+        own = (out / f"draw_{k}" / "display_frontier.md").read_text()
+        mine = next(line for line in own.splitlines() if line.startswith("| 20 ms | test |"))
+        assert mine.split(" | ")[2].startswith(v)  # the draw's own target table
+        ratios = [float(c.split()[0]) for c in mine.split(" | ")[2:4] if c[0].isdigit()]
+        met += all(r <= 1.0 for r in ratios)
+    assert row.rstrip(" |").endswith(f"{met} of 2")
+    assert (out / "draw_6" / "display_frontier.png").is_file()
+    assert (out / "display_frontier.csv").read_text() == (
+        out / "draw_5" / "display_frontier.csv").read_text()
+    assert dfr.main(["--report-only", "--out", str(out)]) == 0
+    again = (out / "display_frontier.md").read_text()
+    assert again.split("Wall time")[0] == top.split("Wall time")[0]
+
+
 def test_display_frontier_refuses_unusable_recordings_in_one_line(tmp_path, capsys):
     """A missing file or a file of several trajectories ended in a traceback; FILE#NAME
     names one (as on phjax's command line); a split whose train half has no positions (the
@@ -542,11 +580,13 @@ def test_display_frontier_render_phase_offsets_the_render_clock():
     np.testing.assert_allclose(offset["truth"][0.02]["gp"], np.asarray(gp), rtol=0, atol=1e-12)
 
 
-def test_display_frontier_per_recording_seeds_draw_independent_sensor_noise():
-    """The published protocol simulates every recording with seed 0: every recording then has
-    the same dropout frames and the same noise sequence, so train and test share them (found
-    in an audit). ``--noise-seed per-recording`` seeds each recording from its name (fixed,
-    reproducible); ``--seed-offset`` draws again under either protocol."""
+def test_frontier_studies_draw_independent_sensor_noise_per_recording():
+    """Until 2026-12-01 every frontier study simulated each recording with seed 0: every
+    recording then had the same dropout frames and the same noise sequence, so train and test
+    shared them (found in an audit). Now each recording is seeded from its name (fixed,
+    reproducible) by default, ``draw`` draws again, and ``shared`` keeps the old protocol; the
+    display-time study and the dev-set studies use the one simulator."""
+    import devset
     import display_frontier as dfr
 
     from phjax.motion.simulate import synthetic_head_motion
@@ -560,17 +600,38 @@ def test_display_frontier_per_recording_seeds_draw_independent_sensor_noise():
     def noise(recs):
         return [r["mp"][np.isfinite(r["mp"]).all(-1)][:50] for r in recs]
 
-    shared = dfr.simulate(seqs, 5.0)
+    shared = dfr.simulate(seqs, 5.0, seeding="shared")
     np.testing.assert_array_equal(*lost(shared))
     np.testing.assert_array_equal(*noise(shared))  # same truth, same draw: identical frames
-    own = dfr.simulate(seqs, 5.0, per_recording_seed=True)
+    own = dfr.simulate(seqs, 5.0)  # the default
     assert not np.array_equal(*noise(own))
-    again = dfr.simulate(seqs, 5.0, per_recording_seed=True)
+    again = devset.simulate_recordings(seqs, 5.0, dfr.RATE)  # one simulator
     np.testing.assert_array_equal(noise(own)[0], noise(again)[0])  # fixed per recording
-    other = dfr.simulate(seqs, 5.0, per_recording_seed=True, seed_offset=1)
+    other = dfr.simulate(seqs, 5.0, draw=1)
     assert not np.array_equal(noise(own)[0], noise(other)[0])
-    assert dfr.noise_seed("a", False) == 0 and dfr.noise_seed("a", False, 2) == 2
-    assert dfr.noise_seed("a", True) != dfr.noise_seed("b", True)
+    assert devset.sensor_seed("a", "shared") == 0 and devset.sensor_seed("a", "shared", 2) == 2
+    assert devset.sensor_seed("a") != devset.sensor_seed("b")
+    assert devset.sensor_seed("a", draw=1) == devset.sensor_seed("a") + 1
+    with pytest.raises(ValueError, match="seeding"):
+        devset.sensor_seed("a", "per-file")
+
+
+def test_display_frontier_interval_over_draws():
+    """The target table over sensor draws: mean and 95 % Student t interval (scipy's), NaN
+    draws left out, no interval from one draw; a draw meets the target only when every
+    measured ratio is at most 1."""
+    import display_frontier as dfr
+    from scipy import stats
+
+    v = [1.062, 1.056, 1.032]
+    m, lo, hi = dfr.draw_interval(v + [math.nan])
+    ref = stats.t.interval(0.95, len(v) - 1, loc=np.mean(v), scale=stats.sem(v))
+    np.testing.assert_allclose([m, lo, hi], [np.mean(v), *ref], rtol=0, atol=2e-6)
+    m1, lo1, hi1 = dfr.draw_interval([0.98])
+    assert m1 == 0.98 and math.isnan(lo1) and math.isnan(hi1)
+    assert all(math.isnan(x) for x in dfr.draw_interval([math.nan]))
+    assert dfr._met([0.99, 1.0]) and not dfr._met([0.99, 1.001])
+    assert dfr._met([0.99, math.nan]) and not dfr._met([math.nan, math.nan])
 
 
 def test_every_script_parses_its_arguments():
