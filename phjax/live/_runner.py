@@ -158,7 +158,7 @@ class LiveStream(TrackerStream):
                 config[i] = config[i] * dt(noise_scale)
         t_host = self._host_time(t_measured)  # sets the origin when unset
         self._relative(t_now)  # checked now; taken relative to the origin when applied
-        position, quaternion = self._complete(*self._host_measurement(position, quaternion))
+        position, quaternion = self._host_measurement(position, quaternion)
         self._feed(t_host, position, quaternion, lambda leaves, t, p, q: self._late(
             config, leaves, t, self._relative(t_now), p, q))
 

@@ -134,8 +134,9 @@ class TrackerStream:
             core busy meanwhile). ``False``: the optimised program at once.
 
     **Sources that measure one part of the pose.** The filter starts from a whole pose. When
-    :data:`PARTIAL_FRAMES` measurements have brought an orientation but never a position (a
-    3-DoF head tracker, an orientation-only trace), the stream takes the position to be the
+    :data:`PARTIAL_FRAMES` applied measurements (not those the time line below drops) have
+    brought an orientation but never a position (a 3-DoF head tracker, an orientation-only
+    trace), the stream takes the position to be the
     origin from then on (and the identity orientation for position-only sources), so that it
     starts and renders that part fixed instead of waiting forever; :attr:`measured_parts` says
     which parts have been measured. When the missing part is measured later, the filter
@@ -198,11 +199,15 @@ class TrackerStream:
         """``(position, orientation)``: whether a valid one has been measured so far."""
         return self._seen[0], self._seen[1]
 
-    def _complete(self, position: np.ndarray, quaternion: np.ndarray):
-        """A host measurement with the never-measured part of a one-part source filled in (the
-        origin / the identity; class docs), else unchanged."""
+    def _complete(self, leaves, position: np.ndarray, quaternion: np.ndarray):
+        """``(leaves, position, quaternion)`` for a host measurement about to be applied to the
+        state ``leaves``: the never-measured part of a one-part source filled in (the origin /
+        the identity; class docs), and that part of the filter started again when it is
+        measured at last; else unchanged. Counts the measurement towards
+        :data:`PARTIAL_FRAMES`: called only for measurements that are applied (not for one the
+        time line holds or drops)."""
         if (self._seen[0] and self._seen[1]) or position.shape != (3,) or quaternion.shape != (4,):
-            return position, quaternion  # a 6-DoF source, or shapes the update rejects itself
+            return leaves, position, quaternion  # a 6-DoF source, or shapes the update rejects
         p_ok = bool(np.isfinite(position).all())
         q_ok = bool(np_valid_quaternions(quaternion))
         filled = 0 if self._seen[1] else 1  # the part filled in, if any: the unseen one
@@ -214,10 +219,9 @@ class TrackerStream:
             # placeholder, so that part starts again from this measurement (at rest); the
             # stream moves to it within a horizon, C1, and the other part goes on unchanged
             self._partial = 0
-            state = self.state
+            state = jax.tree.unflatten(self._state_def, leaves)
             kf = _filter_restart_part(self.config, state.filter, filled, position, quaternion)
-            self._leaves = jax.tree.leaves(eqx.tree_at(lambda s: s.filter, state, kf))
-            return position, quaternion
+            return jax.tree.leaves(eqx.tree_at(lambda s: s.filter, state, kf)), position, quaternion
         other_seen = self._seen[0] if q_ok else self._seen[1]
         if p_ok != q_ok and not other_seen:  # one part only, and the other never seen
             self._partial += 1
@@ -226,7 +230,7 @@ class TrackerStream:
                     position = np.zeros(3, position.dtype)
                 else:
                     quaternion = np.array([1, 0, 0, 0], quaternion.dtype)
-        return position, quaternion
+        return leaves, position, quaternion
 
     def set_config(self, config: TrackerConfig) -> None:
         """Use another config (one of the same structure does not recompile).
@@ -298,7 +302,8 @@ class TrackerStream:
             raise ValueError("state: not a TrackerState of this stream's filter and structure")
         self._leaves = leaves
         self._latest = None  # the latest host measurement time: unknown for a given state
-        self._before = None  # (leaves, latest time) before the latest measurement
+        # (leaves, latest time, (measured parts, partial count)) before the latest measurement
+        self._before = None
         self._pending = None  # (time, position, quaternion) held: far before the time line
 
     def _feed(self, t_host: float, position, quaternion, step) -> None:
@@ -316,6 +321,7 @@ class TrackerStream:
                 and latest - before[1] > tol and rel >= before[1] - tol):
             # the latest measurement jumped ahead of the time line this one continues
             self.time_glitches += 1
+            self._seen, self._partial = list(before[2][0]), before[2][1]
             leaves, latest, before, back = before[0], before[1], None, False
         elif back and pending is not None and rel >= pending[0] - self.origin - tol:
             # two measurements on a new, earlier time line: the source's clock went back; a
@@ -340,10 +346,14 @@ class TrackerStream:
         self._leaves, self._latest, self._before = leaves, latest, before
 
     def _step(self, leaves, latest, t_host: float, position, quaternion, step):
-        """``(new leaves, new latest time, (leaves, latest))`` of one update."""
+        """``(new leaves, new latest time, (leaves, latest, counts))`` of one update (the
+        one-part completion, :meth:`_complete`, applied here: ``counts`` are its counters
+        before it)."""
+        counts = (tuple(self._seen), self._partial)
         rel = t_host - self.origin
-        new = step(leaves, self._scalar(rel), position, quaternion)
-        return new, (rel if latest is None else max(latest, rel)), (leaves, latest)
+        filled, position, quaternion = self._complete(leaves, position, quaternion)
+        new = step(filled, self._scalar(rel), position, quaternion)
+        return new, (rel if latest is None else max(latest, rel)), (leaves, latest, counts)
 
     def update(self, t: Float[ArrayLike, ""], position: Float[ArrayLike, "3"],
                quaternion: Float[ArrayLike, "4"]) -> None:
@@ -362,7 +372,6 @@ class TrackerStream:
         if not isinstance(t, jax.Array):  # host values: one input signature for every call
             t_host = self._host_time(t)
             position, quaternion = self._host_measurement(position, quaternion)
-            position, quaternion = self._complete(position, quaternion)
             self._feed(t_host, position, quaternion, functools.partial(
                 self._update, self._config_leaves))
             return

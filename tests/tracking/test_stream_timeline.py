@@ -150,3 +150,28 @@ def test_a_held_measurement_is_checked_and_copied(meas):  # noqa: F811
     assert s.time_restarts == 1
     ref = _started(meas, 2)
     _same_state(s, ref)
+
+
+@pytest.mark.parametrize("jump", [-50.0, 1e3])
+def test_a_dropped_measurement_does_not_count_for_a_one_part_source(meas, jump):  # noqa: F811
+    """An orientation-only source (a 3-DoF tracker) gets its position fixed at the origin
+    after ``PARTIAL_FRAMES`` frames. One frame with a glitched time that also carries a
+    position (held, then dropped by the time line; or forgotten, far ahead) used to count as
+    the position being measured before the time line decided: the placeholder was then never
+    used, and the stream never started (NaN forever). Now only applied measurements count:
+    the stream is exactly the one that never saw the glitch."""
+    t, p, q = meas
+    nan = np.full(3, np.nan, np.float32)
+    s = pj.TrackerStream(fast_start=False)
+    ref = pj.TrackerStream(fast_start=False)
+    for k in range(16):
+        if k == 3:
+            s.update(t[2] + jump, p[3], q[3])  # a whole pose, at a glitched time
+        s.update(t[k], nan, q[k])
+        ref.update(t[k], nan, q[k])
+    assert s.time_glitches == 1
+    assert s.measured_parts == ref.measured_parts == (False, True)
+    _same_state(s, ref)
+    pos, quat = _sampled(s, [t[15]])
+    np.testing.assert_array_equal(pos, np.zeros((1, 3), np.float32))  # the origin
+    assert np.isfinite(quat).all()
