@@ -118,13 +118,26 @@ def simulated_devset(seconds: float, quick: bool = False, rate: float = 30.0,
                                quick, seeding, draw)
 
 
+def _draw(text: str) -> int:
+    """``--draw``: a non-negative integer."""
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer of at least 0, got {text!r}")
+    return value
+
+
 def add_sensor_arguments(ap) -> None:
     """``--noise-seed`` and ``--draw``: the sensor-draw options every frontier study shares."""
     ap.add_argument("--noise-seed", choices=SEEDINGS, default="per-recording",
                     help="the simulated sensor's seeding: one seed per recording from its name "
                     "(default: independent noise and dropouts) or 'shared' (seed = draw for "
                     "every recording, the protocol of the tables before 2026-12-01)")
-    ap.add_argument("--draw", type=int, default=0,
+    ap.add_argument("--draw", type=_draw, default=0,
                     help="added to every recording's sensor seed: another draw of the noise and "
                     "dropouts under the same protocol (default 0)")
 

@@ -569,8 +569,8 @@ def main(argv=None):
         ap.error("--render-phase must lie in [0, 1) render periods")
     if args.draws is None:
         args.draws = 1 if args.smoke else 3
-    if not 1 <= args.draws <= 20 or args.draw < 0:
-        ap.error("--draws must lie in 1-20 and --draw must be at least 0")
+    if not 1 <= args.draws <= 20:
+        ap.error("--draws must lie in 1-20")
     out = Path(args.out)
     options = {}
     for item in args.stream_option:

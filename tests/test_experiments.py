@@ -614,6 +614,15 @@ def test_frontier_studies_draw_independent_sensor_noise_per_recording():
     assert devset.sensor_seed("a", draw=1) == devset.sensor_seed("a") + 1
     with pytest.raises(ValueError, match="seeding"):
         devset.sensor_seed("a", "per-file")
+    import argparse
+
+    ap = argparse.ArgumentParser()
+    devset.add_sensor_arguments(ap)
+    args = ap.parse_args(["--draw", "2"])
+    assert (args.draw, args.noise_seed) == (2, "per-recording")
+    for bad in ("-1", "1.5"):
+        with pytest.raises(SystemExit):
+            ap.parse_args(["--draw", bad])
 
 
 def test_display_frontier_interval_over_draws():
