@@ -473,6 +473,7 @@ def test_display_frontier_smoke_on_named_recordings(tmp_path):
     assert "## Lookahead 20 ms" in text and "At equal smoothness" in text
     assert "### The stream's frontier where its jerk is 1/3 of the Kalman CV's" in text
     assert "120 Hz render aligned with the camera clock" in text
+    assert "The swept stream with a horizon per channel" in text
     rows = _rows(out / "display_frontier.csv")
     tuned = json.loads((out / "tuned.json").read_text())
     h20 = tuned["20 ms"]["phjax stream"][0]
@@ -531,6 +532,35 @@ def test_display_frontier_over_sensor_draws_agrees_with_each_draw(tmp_path):
     assert dfr.main(["--report-only", "--out", str(out)]) == 0
     again = (out / "display_frontier.md").read_text()
     assert again.split("Wall time")[0] == top.split("Wall time")[0]
+
+
+def test_display_frontier_horizon_per_channel_follows_each_channels_jerk_rule():
+    """The per-channel reading of the stream's sweep: position takes the best train position
+    RMSE among the horizons whose train position jerk is within 1/3 of the Kalman CV's,
+    rotation likewise on its own jerk (here 30 and 20 ms, where the one-horizon rule, bound by
+    both channels, takes 30 ms for both); a channel no train recording measures keeps the
+    one-horizon choice; the rows are the sweep's own."""
+    import display_frontier as dfr
+
+    def rows(pos, rot, jp, jr):
+        return [dict(pos=pos, rot=rot, jp=jp, jr=jr) for _ in range(3)]
+
+    kf = "kalman-cv extrapolation"
+    sweep = {0.02: rows(0.5, 0.5, 1.2, 0.9), 0.03: rows(0.6, 0.6, 0.9, 0.6),
+             0.04: rows(0.7, 0.7, 0.5, 0.3)}
+    res = dict(hold=rows(1.0, 1.0, 1.0, 1.0),
+               runs={(kf, 1.0): rows(1.0, 1.0, 3.0, 3.0)}
+               | {(dfr.STREAM, h): r for h, r in sweep.items()},
+               tuned={kf: (1.0, 1.0), dfr.STREAM: (0.03, 0.03)})
+    dfr.add_per_channel(res, [0, 1])
+    assert res["tuned"][dfr.PER_CHANNEL] == (0.03, 0.02)
+    assert dfr.rows_of(res, dfr.PER_CHANNEL, "r") is sweep[0.02]
+    for h in sweep:  # no rotation measured on train: the rule's one horizon
+        for r in sweep[h]:
+            r["jr"] = math.nan
+    del res["tuned"][dfr.PER_CHANNEL]
+    dfr.add_per_channel(res, [0, 1])
+    assert res["tuned"][dfr.PER_CHANNEL] == (0.03, 0.03)
 
 
 def test_display_frontier_refuses_unusable_recordings_in_one_line(tmp_path, capsys):
