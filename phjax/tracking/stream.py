@@ -157,7 +157,8 @@ class TrackerStream:
     stale frame), one that continues the new, earlier one means the source's clock went back
     for good (a restarted or looping source), and the filter starts again from the held
     measurement (the rendered pose jumps to it; without a given ``t`` the origin moves to
-    it). Forgotten and dropped measurements are counted in :attr:`time_glitches`, restarts
+    it; the parts measured, :attr:`measured_parts`, are counted again from there).
+    Forgotten and dropped measurements are counted in :attr:`time_glitches`, restarts
     in :attr:`time_restarts` (a first measurement that the next two contradict is a glitch).
     Until the next measurement, one far ahead shows the pose at rest where the stream was
     going. A ``jax.Array`` time is not checked (that would wait for the device).
@@ -334,6 +335,9 @@ class TrackerStream:
                 self.origin = pending[0]
             leaves = jax.tree.leaves(tracker_init(
                 self.config, self._scalar(pending[0] - self.origin), self.dtype))
+            # the filter starts again, and so does the count of the parts measured (a
+            # glitched first measurement's parts were never measured)
+            self._seen, self._partial = [False, False], 0
             leaves, latest, before = self._step(leaves, None, *pending, step)
             pending, back = None, False
         if pending is not None:

@@ -175,3 +175,28 @@ def test_a_dropped_measurement_does_not_count_for_a_one_part_source(meas, jump):
     pos, quat = _sampled(s, [t[15]])
     np.testing.assert_array_equal(pos, np.zeros((1, 3), np.float32))  # the origin
     assert np.isfinite(quat).all()
+
+
+def test_a_glitched_first_measurement_or_a_restart_counts_the_parts_again(meas):  # noqa: F811
+    """Found in review: (1) a whole pose at a glitched *first* time, then an orientation-only
+    source: the glitch is dropped when the new time line restarts the filter, but its position
+    still counted as measured, so the position placeholder was never used (NaN forever). (2) A
+    6-DoF source whose clock restarts as an orientation-only one: likewise. A restart now
+    counts the measured parts again, so both streams equal one that saw only the new line."""
+    t, p, q = meas
+    nan = np.full(3, np.nan, np.float32)
+    first = pj.TrackerStream(fast_start=False)
+    first.update(1e3, p[0], q[0])  # a glitched first time, with a whole pose
+    restarted = _started(meas, 30)  # a 6-DoF source ...
+    ref = pj.TrackerStream(fast_start=False)
+    for k in range(14):  # ... whose clock starts again, orientation only
+        for s in (first, restarted, ref):
+            s.update(t[k], nan, q[k])
+    assert (first.time_glitches, first.time_restarts) == (1, 0)
+    assert restarted.time_restarts == 1
+    for s in (first, restarted):
+        assert s.measured_parts == ref.measured_parts == (False, True)
+        _same_state(s, ref)
+        pos, quat = _sampled(s, [t[13]])
+        np.testing.assert_array_equal(pos, np.zeros((1, 3), np.float32))
+        assert np.isfinite(quat).all()
