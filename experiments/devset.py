@@ -118,6 +118,13 @@ def simulated_devset(seconds: float, quick: bool = False, rate: float = 30.0,
                                quick, seeding, draw)
 
 
+def sensor_note(seeding: str, draw: int) -> str:
+    """The sensor draw a report rests on, in one sentence (its header)."""
+    return (f"Sensor draw {draw}: " + ("each recording its own seed (its name's CRC-32 + "
+            f"{draw})" if seeding == "per-recording" else f"seed {draw} for every recording "
+            "(--noise-seed shared: all share one noise and dropout sequence)") + ".")
+
+
 def _draw(text: str) -> int:
     """``--draw``: a non-negative integer."""
     import argparse

@@ -58,8 +58,9 @@ Protocol: that of ``experiments/frontier.py`` (its docstring), at each lookahead
 Outputs in ``--out``: ``display_frontier.md`` (the target table over draws), and per draw in
 ``draw_K/``: ``display_frontier.md`` (every table), ``display_frontier.csv`` (every run),
 ``display_frontier.png`` (RMSE vs jerk per lookahead, test split), ``tuned.json``; the first
-draw's csv and figure are copied to ``--out`` too. With one draw (``--draws 1``, ``--smoke``)
-its files are written to ``--out`` directly.
+draw's csv, figure and tuned knobs are copied to ``--out`` too. With one draw (``--draws 1``,
+``--smoke``) its files are written to ``--out`` directly. ``draw_K/`` folders of an earlier
+run that are not this run's draws are removed.
 """
 
 from __future__ import annotations
@@ -82,7 +83,12 @@ jax.config.update("jax_enable_x64", True)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import frontier as F  # noqa: E402
-from devset import add_sensor_arguments, load_devset, simulate_recordings  # noqa: E402
+from devset import (  # noqa: E402
+    add_sensor_arguments,
+    load_devset,
+    sensor_note,
+    simulate_recordings,
+)
 
 from phjax.io import TrajectoryWarning  # noqa: E402
 from phjax.motion.resample import (  # noqa: E402
@@ -636,11 +642,12 @@ def main(argv=None):
         print(f"--report-only: the saved run's lookaheads, draws, --seconds and --render-phase "
               f"({out / 'results.pkl'}); other options are not used", flush=True)
         if "draws" not in saved:  # a run of one draw before 2026-12-01 (shared seeds)
-            saved = dict(saved, draws=[dict(draw=saved.get("protocol", {}).get("seed_offset", 0),
-                                            data=saved["data"], results=saved["results"],
-                                            wall=saved["wall"])],
-                         protocol={"noise_seed": saved.get("protocol", {}).get(
-                             "noise_seed", "shared")})
+            old = dict(saved.get("protocol", {}))
+            old.setdefault("noise_seed", "shared")
+            old.setdefault("rooms_test_only", False)  # every room, before the option existed
+            saved = dict(saved, draws=[dict(draw=old.pop("seed_offset", 0), data=saved["data"],
+                                            results=saved["results"], wall=saved["wall"])],
+                         protocol=old)
         runs = saved["draws"]
         args.seconds, args.render_phase = saved["seconds"], saved.get("render_phase", 0.0)
         for name, value in saved.get("protocol", {}).items():  # the run's own protocol options
@@ -697,6 +704,12 @@ def main(argv=None):
                  "(--stream-option).\n\n")
     if protocol:
         head += f"Protocol options: {', '.join(protocol)}.\n\n"
+    import shutil
+
+    here = {f"draw_{r['draw']}" for r in runs} if len(runs) > 1 else set()
+    for stale in out.glob("draw_*"):  # another run's draws: not this run's results
+        if stale.is_dir() and stale.name[5:].isdigit() and stale.name not in here:
+            shutil.rmtree(stale)
     summaries = []
     for run_ in runs:
         where = out if len(runs) == 1 else out / f"draw_{run_['draw']}"
@@ -710,10 +723,9 @@ def main(argv=None):
                                    saved["wall"] if args.report_only else time.time() - t0)
         (out / "display_frontier.md").write_text(text)
         print(text)
-        # the figure and the per-recording scores of the first draw at the top level too
-        import shutil
-
-        for f in ("display_frontier.png", "display_frontier.csv"):
+        # the figure, the per-recording scores and the tuned knobs of the first draw at the
+        # top level too
+        for f in ("display_frontier.png", "display_frontier.csv", "tuned.json"):
             if (out / f"draw_{runs[0]['draw']}" / f).exists():
                 shutil.copyfile(out / f"draw_{runs[0]['draw']}" / f, out / f)
     return 0
@@ -757,7 +769,7 @@ def write_draw(out: Path, run_: dict, args, head: str) -> tuple[str, dict]:
     train, splits = _split(data, args.all_rooms)
     text, summary = report(data, results, names, train, splits, args.seconds, run_["wall"],
                            args.render_phase)
-    text = head + f"Sensor draw {run_['draw']} ({args.noise_seed} seeds).\n\n" + text
+    text = head + sensor_note(args.noise_seed, run_["draw"]) + "\n\n" + text
     (out / "display_frontier.md").write_text(text)
     write_csv(out / "display_frontier.csv", data, results, train)
 
@@ -794,9 +806,10 @@ def draw_interval(values) -> tuple[float, float, float]:
 
 
 def _met(ratios) -> bool:
-    """The target on one draw: every measured ratio at most 1.00 (and at least one measured)."""
-    fin = [v for v in ratios if np.isfinite(v)]
-    return bool(fin) and all(v <= 1.0 for v in fin)
+    """The target on one draw: every measured (not NaN) ratio at most 1.00, and at least one
+    measured."""
+    got = [v for v in ratios if not math.isnan(v)]
+    return bool(got) and all(v <= 1.0 for v in got)
 
 
 def draws_report(runs, summaries, seconds, phase, wall) -> str:

@@ -64,7 +64,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from devset import add_sensor_arguments, simulated_devset  # noqa: E402
+from devset import add_sensor_arguments, sensor_note, simulated_devset  # noqa: E402
 
 from phjax.evaluation.metrics import rms_jerk_position, rms_jerk_rotation  # noqa: E402
 from phjax.motion.resample import interpolate_poses, snap_to_frames  # noqa: E402
@@ -379,7 +379,8 @@ def main(argv=None):
 
     lines = ["# Accuracy / smoothness / lag frontier (development set)", "",
              f"{len(data)} recordings x {args.seconds:g} s (first second warm-up), default sensor "
-             "(30 Hz, 5 mm, 1 deg, 5 % dropouts), 120 Hz render. Train (tuning): "
+             "(30 Hz, 5 mm, 1 deg, 5 % dropouts), 120 Hz render. "
+             + sensor_note(args.noise_seed, args.draw) + " Train (tuning): "
              + ", ".join(names[i] for i in train) + ". Test: " + ", ".join(names[i] for i in test)
              + ".", "",
              "Each method at its knob tuned on train (lowest RMSE; phjax: lowest RMSE among the "

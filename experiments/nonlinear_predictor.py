@@ -80,7 +80,7 @@ import numpy as np
 import optax
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from devset import add_sensor_arguments  # noqa: E402
+from devset import add_sensor_arguments, sensor_note  # noqa: E402
 from predictor_bound import (  # noqa: E402  (also enables jax x64)
     RATE,
     RENDER,
@@ -531,7 +531,8 @@ def main(argv: list[str] | None = None) -> int:
         "# Non-linear prediction vs the IMM (median of per-recording RMSE ratios)\n\n"
         f"`python experiments/nonlinear_predictor.py --seconds {args.seconds:g} --taps "
         f"{' '.join(map(str, args.taps))} --seeds {args.seeds}"
-        f"{' --quick' if args.quick else ''}`: {len(data)} recordings, {elapsed:.0f} s.\n\n"
+        f"{' --quick' if args.quick else ''}`: {len(data)} recordings, {elapsed:.0f} s. "
+        + sensor_note(args.noise_seed, args.draw) + "\n\n"
         + table + "\n**Networks** (fitted on the train recordings' fitted instants, stopped on "
         "their validation instants; best step 0 = the initial network: zero output, or the IMM "
         "itself for the residual)\n\n" + summarise_training(log) + "\n")

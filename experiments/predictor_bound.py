@@ -48,7 +48,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from devset import add_sensor_arguments, simulated_devset  # noqa: E402
+from devset import add_sensor_arguments, sensor_note, simulated_devset  # noqa: E402
 
 from phjax._np_quat import np_qconj, np_qmul, np_rotvec  # noqa: E402
 from phjax.motion.resample import interpolate_poses  # noqa: E402
@@ -221,7 +221,8 @@ def main(argv=None) -> int:
         w.writerows(rows)
     table = summarise(rows)
     (out / "predictor_bound.md").write_text(
-        "# Linear-prediction bound (median of per-recording RMSE ratios)\n\n" + table + "\n")
+        "# Linear-prediction bound (median of per-recording RMSE ratios)\n\n"
+        + sensor_note(args.noise_seed, args.draw) + "\n\n" + table + "\n")
     print(table)
     return 0
 

@@ -518,20 +518,41 @@ def test_display_frontier_over_sensor_draws_agrees_with_each_draw(tmp_path):
     assert len(per) == 2
     mean = float(cells[2].split()[0])
     assert mean == pytest.approx(np.mean([float(v) for v in per]), abs=1.1e-3)
-    met = 0
     for k, v in zip((5, 6), per):
         own = (out / f"draw_{k}" / "display_frontier.md").read_text()
+        assert "Sensor draw %d: each recording its own seed" % k in own
         mine = next(line for line in own.splitlines() if line.startswith("| 20 ms | test |"))
         assert mine.split(" | ")[2].startswith(v)  # the draw's own target table
-        ratios = [float(c.split()[0]) for c in mine.split(" | ")[2:4] if c[0].isdigit()]
-        met += all(r <= 1.0 for r in ratios)
+    import pickle
+
+    saved = pickle.load(open(out / "results.pkl", "rb"))
+    met = 0
+    for run in saved["draws"]:  # the target on the unrounded ratios
+        _, splits = dfr._split(run["data"], False)
+        tr = dfr.target_rows(run["results"][0.02], splits["test"])
+        met += dfr._met([tr["phjax_pos"][0], tr["phjax_rot"][0]])
     assert row.rstrip(" |").endswith(f"{met} of 2")
     assert (out / "draw_6" / "display_frontier.png").is_file()
-    assert (out / "display_frontier.csv").read_text() == (
-        out / "draw_5" / "display_frontier.csv").read_text()
+    for f in ("display_frontier.csv", "tuned.json"):
+        assert (out / f).read_text() == (out / "draw_5" / f).read_text()
+    (out / "draw_9").mkdir()  # a folder of an earlier run's draws: removed
     assert dfr.main(["--report-only", "--out", str(out)]) == 0
     again = (out / "display_frontier.md").read_text()
     assert again.split("Wall time")[0] == top.split("Wall time")[0]
+    assert not (out / "draw_9").exists() and (out / "draw_6").is_dir()
+    # a pickle of one draw as written before 2026-12-01: its own protocol options kept
+    old = tmp_path / "old"
+    old.mkdir()
+    first = saved["draws"][0]
+    with open(old / "results.pkl", "wb") as fh:
+        pickle.dump(dict(data=first["data"], results=first["results"], wall=1.0,
+                         seconds=saved["seconds"], render_phase=0.0,
+                         protocol=dict(noise_seed="shared", seed_offset=2,
+                                       tune_one_euro_dcutoff=True, rooms_test_only=False)), fh)
+    assert dfr.main(["--report-only", "--out", str(old)]) == 0
+    text = (old / "display_frontier.md").read_text()
+    assert "One Euro d_cutoff tuned" in text and "TUM VI rooms of both splits" in text
+    assert "Sensor draw 2: seed 2 for every recording" in text
 
 
 def test_display_frontier_horizon_per_channel_follows_each_channels_jerk_rule():
@@ -671,6 +692,7 @@ def test_display_frontier_interval_over_draws():
     assert all(math.isnan(x) for x in dfr.draw_interval([math.nan]))
     assert dfr._met([0.99, 1.0]) and not dfr._met([0.99, 1.001])
     assert dfr._met([0.99, math.nan]) and not dfr._met([math.nan, math.nan])
+    assert not dfr._met([0.9, math.inf])
 
 
 def test_every_script_parses_its_arguments():
