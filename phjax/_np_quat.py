@@ -57,9 +57,8 @@ def np_qnormalize(q: np.ndarray) -> np.ndarray:
         plain = (n > np.sqrt(info.tiny) / info.eps) & (n < np.sqrt(info.max) * info.eps)
         scale = np.max(np.abs(q), axis=-1, keepdims=True)
         ok = np.isfinite(scale) & (scale > 0)
-        s = q / np.where(ok & ~plain, scale, 1)
-        ns = np.linalg.norm(s, axis=-1, keepdims=True)
-        return np.where(ok, s / np.where(plain, n, ns), np.nan)
+        s = q / np.where(ok & ~plain, scale, 1)  # q itself where plain: its norm is n
+        return np.where(ok, s / np.linalg.norm(s, axis=-1, keepdims=True), np.nan)
 
 
 def np_rotvec(q: np.ndarray) -> np.ndarray:

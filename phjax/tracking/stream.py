@@ -207,8 +207,8 @@ class TrackerStream:
         measured at last; else unchanged. Counts the measurement towards
         :data:`PARTIAL_FRAMES`: called only for measurements that are applied (not for one the
         time line holds or drops)."""
-        if (self._seen[0] and self._seen[1]) or position.shape != (3,) or quaternion.shape != (4,):
-            return leaves, position, quaternion  # a 6-DoF source, or shapes the update rejects
+        if self._seen[0] and self._seen[1]:  # a 6-DoF source (shapes: _host_measurement)
+            return leaves, position, quaternion
         p_ok = bool(np.isfinite(position).all())
         q_ok = bool(np_valid_quaternions(quaternion))
         filled = 0 if self._seen[1] else 1  # the part filled in, if any: the unseen one
