@@ -274,24 +274,19 @@ def measure(data, L: float, train: list[int], log=print, small: bool = False,
 # ---------------------------------------------------------------------------------- analysis
 def add_per_channel(res, train: list[int]) -> None:
     """Add :data:`PER_CHANNEL` to ``res``: the stream's sweep with the position horizon chosen
-    by the jerk rule on position alone (lowest mean train position RMSE / hold among the
-    horizons whose mean train position jerk is at most 1/3 of the tuned Kalman CV's) and the
-    rotation horizon likewise, as every baseline's knob is chosen per channel. The longest
-    horizon when none qualifies; a channel no train recording measures keeps the one-horizon
-    rule's choice."""
+    by the jerk rule on position alone (``frontier.horizon_rule`` on that channel) and the
+    rotation horizon likewise, as every baseline's knob is chosen per channel; a channel no
+    train recording measures keeps the one-horizon rule's choice."""
     kf = res["tuned"]["kalman-cv extrapolation"]
+    kf_p, kf_r = (res["runs"][("kalman-cv extrapolation", k)] for k in kf)
     hs = sorted(h for (m, h) in res["runs"] if m == STREAM)
-    shared = res["tuned"][STREAM][0]
     picks = []
-    for key, jkey, knob in (("pos", "jp", kf[0]), ("rot", "jr", kf[1])):
-        ref = res["runs"][("kalman-cv extrapolation", knob)]
-        jerk = {h: F.rel_mean(res["runs"][(STREAM, h)], ref, jkey, train) for h in hs}
-        if all(math.isnan(j) for j in jerk.values()):
-            picks.append(shared)
+    for ch, ref, jkey in (("pos", kf_p, "jp"), ("rot", kf_r, "jr")):
+        if math.isnan(F.rel_mean(res["runs"][(STREAM, hs[0])], ref, jkey, train)):
+            picks.append(res["tuned"][STREAM][0])  # not measured on train: at no horizon
             continue
-        ok = [h for h in hs if jerk[h] <= 1 / 3]
-        picks.append(min(ok, key=lambda h: F._nan_inf(F.rel_mean(
-            res["runs"][(STREAM, h)], res["hold"], key, train))) if ok else max(hs))
+        picks.append(F.horizon_rule(lambda h: res["runs"][(STREAM, h)], hs, kf_p, kf_r,
+                                    res["hold"], train, log=lambda _: None, channels=(ch,)))
     for h in hs:
         res["runs"][(PER_CHANNEL, h)] = res["runs"][(STREAM, h)]
     res["tuned"][PER_CHANNEL] = tuple(picks)

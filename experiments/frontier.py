@@ -232,21 +232,24 @@ def rel_mean(rows, ref, key, idx):
     return float(np.mean(v)) if v else math.nan
 
 
-def horizon_rule(rows_of, horizons, kf_p, kf_r, hold, train, log=print):
+def horizon_rule(rows_of, horizons, kf_p, kf_r, hold, train, log=print,
+                 channels=("pos", "rot")):
     """The stream's operating point: the horizon with the lowest train RMSE (relative to the
-    hold, position + rotation) among those whose train jerk is at most 1/3 of the tuned Kalman
-    CV's (``kf_p`` / ``kf_r``: its rows at its position / rotation knob). A channel the train
+    hold, summed over ``channels``) among those whose train jerk is at most 1/3 of the tuned
+    Kalman CV's (``kf_p`` / ``kf_r``: its rows at its position / rotation knob) in each of
+    ``channels`` (default both; one channel: that channel's own horizon). A channel the train
     recordings do not measure (NaN: orientation-only VR traces have no positions) neither
     constrains nor scores; when no horizon meets the rule the longest (smoothest) is taken,
     said in ``log``. ``rows_of(h)``: the stream's rows at horizon ``h``."""
+    jerk_ref = {"pos": (kf_p, "jp"), "rot": (kf_r, "jr")}
+
     def within(h):
-        j = [rel_mean(rows_of(h), kf_p, "jp", train), rel_mean(rows_of(h), kf_r, "jr", train)]
+        j = [rel_mean(rows_of(h), *jerk_ref[c], train) for c in channels]
         j = [x for x in j if not math.isnan(x)]
         return bool(j) and all(x <= 1 / 3 for x in j)
 
     def score(h):
-        return float(np.nansum([rel_mean(rows_of(h), hold, "pos", train),
-                                rel_mean(rows_of(h), hold, "rot", train)]))
+        return float(np.nansum([rel_mean(rows_of(h), hold, c, train) for c in channels]))
 
     ok = [h for h in horizons if within(h)]
     if not ok:
