@@ -473,7 +473,7 @@ def test_display_frontier_smoke_on_named_recordings(tmp_path):
     assert "## Lookahead 20 ms" in text and "At equal smoothness" in text
     assert "### The stream's frontier where its jerk is 1/3 of the Kalman CV's" in text
     assert "120 Hz render aligned with the camera clock" in text
-    assert "The swept stream with a horizon per channel" in text
+    assert "The stream with a horizon per channel (`TrackerConfig.rotation_horizon`)" in text
     rows = _rows(out / "display_frontier.csv")
     tuned = json.loads((out / "tuned.json").read_text())
     h20 = tuned["20 ms"]["phjax stream"][0]

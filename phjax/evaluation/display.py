@@ -157,7 +157,8 @@ class Choice:
     Attributes:
         method: method name.
         setting: ``"phjax"``, ``"tuned"`` or ``"equal smoothness"``.
-        knobs: ``(position, rotation)`` knob values (phjax: its horizon twice).
+        knobs: ``(position, rotation)`` knob values (phjax: its horizons, the rotation's
+            ``rotation_horizon`` or the same ``horizon``).
         metrics: ``position_rmse`` (m), ``rotation_rmse_deg``, ``jerk_position``,
             ``jerk_rotation``, ``lag_position``, ``lag_rotation`` (s, behind the display time).
         reached: per channel, whether some knob got as smooth as phjax (equal smoothness;
@@ -180,7 +181,7 @@ class DisplayComparison:
         choices: lookahead -> rows (phjax first, then per baseline tuned and equal smoothness).
         sweeps: lookahead -> method -> list of ``(position knob, rotation knob, metrics)`` of
             every knob the search evaluated (RMSE and jerk only), in evaluation order.
-        horizon: phjax's horizon, s.
+        horizon: phjax's horizon, s (position; the rotation's is ``choices[L][0].knobs[1]``).
     """
 
     lookaheads: tuple[float, ...]
@@ -342,7 +343,8 @@ def compare_at_display(
             cfg = eqx.tree_at(lambda c: c.lookahead, cfg0, L)
             m = known.get("phjax (causal)") or evaluate(
                 lambda t, p, q, r, cfg=cfg: track(t, p, q, r, config=cfg), lag=True)
-            choices[L] = [Choice("phjax (causal)", "phjax", (cfg0.horizon,) * 2, m)]
+            rot_h = cfg0.horizon if cfg0.rotation_horizon is None else cfg0.rotation_horizon
+            choices[L] = [Choice("phjax (causal)", "phjax", (cfg0.horizon, rot_h), m)]
             sweeps[L] = {}
             continue
         target = {ch: choices[L][0].metrics[_JERK[ch]] for ch in _CHANNELS}
@@ -356,6 +358,12 @@ def compare_at_display(
 
 
 # ------------------------------------------------------------------------------------- output
+def _horizons(knobs) -> str:
+    """phjax's horizon, or its position / rotation horizons when they differ, in ms."""
+    h = [f"{1e3 * float(k):g}" for k in knobs]
+    return f"{h[0]} ms" if h[0] == h[1] else f"{h[0]} / {h[1]} ms"
+
+
 def _num(v: float) -> str:
     if v is None or not np.isfinite(v):
         return "-"
@@ -401,7 +409,7 @@ def format_choices(comp: DisplayComparison,
                   "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for c in rows:
             if c.setting == "phjax":
-                name, setting = f"**{c.method}**", f"horizon {1e3 * comp.horizon:g} ms"
+                name, setting = f"**{c.method}**", f"horizon {_horizons(c.knobs)}"
             elif c.setting == "tuned":
                 name = c.method
                 setting = f"tuned: {label[c.method]} {_knob(c.knobs[0])} / {_knob(c.knobs[1])}"
@@ -512,7 +520,7 @@ def plot_choices(comp: DisplayComparison, path: str | Path) -> Path:
             if np.isfinite(ph.get(jk, np.nan)) and np.isfinite(ref):
                 ax.axvline(ph[jk], color="C3", ls=":", lw=1)
                 ax.plot(ph[jk], ref, "*", ms=16, color="C3", zorder=5,
-                        label=f"phjax (horizon {1e3 * comp.horizon:g} ms)")
+                        label=f"phjax (horizon {1e3 * rows[0].knobs[i]:g} ms)")
             else:
                 ax.text(0.5, 0.5, f"no {ch} data", ha="center", va="center",
                         transform=ax.transAxes)

@@ -34,7 +34,8 @@ measurement is a plain update (nothing has been rendered before it).
 
 Adaptive settling. When measurements arrive less often than the tracker's ``horizon`` (a slow
 front-end), a correction applied within ``horizon`` would be a visible step. With
-``adaptive=True`` the runner sets ``horizon`` to the measured interval between good
+``adaptive=True`` the runner sets ``horizon`` (and a ``rotation_horizon`` of its own, if the
+config has one) to the measured interval between good
 measurements (its running mean, or the last interval if longer, as after a lost face; at least
 the configured value, at most 0.5 s) and ``coast_time`` to 1.5 times the horizon, never below
 the configured value; the config is replaced only when the horizon moves by more than 15 % (a
@@ -553,11 +554,23 @@ class LiveTracker:
             base = self.base_config
             # the typical interval, or this one if longer (re-acquisition after a loss: the
             # larger correction is spread over a longer time)
-            horizon = min(max(float(base.horizon), self._interval_ema, dt), 0.5)
-            coast = max(float(base.coast_time), 1.5 * horizon)
+            def adapted(h):
+                return min(max(float(h), self._interval_ema, dt), 0.5)
+
+            horizon = adapted(base.horizon)
             used = self._config_used
-            if abs(horizon - float(used.horizon)) > 0.15 * float(used.horizon):
-                cfg = eqx.tree_at(lambda c: (c.horizon, c.coast_time), base, (horizon, coast))
+            moved = abs(horizon - float(used.horizon)) > 0.15 * float(used.horizon)
+            if base.rotation_horizon is None:
+                fields, values = (lambda c: (c.horizon, c.coast_time)), (horizon,)
+            else:  # an orientation horizon of its own adapts in the same way
+                rot = adapted(base.rotation_horizon)
+                moved |= abs(rot - float(used.rotation_horizon)) > 0.15 * float(
+                    used.rotation_horizon)
+                fields = lambda c: (c.horizon, c.rotation_horizon, c.coast_time)  # noqa: E731
+                values = (horizon, rot)
+            if moved:
+                coast = max(float(base.coast_time), 1.5 * max(values))
+                cfg = eqx.tree_at(fields, base, (*values, coast))
                 self.stream.set_config(cfg)
                 self._config_used = cfg
         self._last_ok_t = t
@@ -704,8 +717,9 @@ class LiveTracker:
         good one), ``render_hz``, ``interval_p50`` / ``_p99`` / ``_max`` (between sends, s),
         ``age_p50`` / ``_p99`` (``Sample.age``), ``applied_age_p50`` / ``_p99`` (capture to
         stream update), ``sent_age_p50`` / ``_p99`` (capture to send), ``front_end_p50`` (the
-        front-end's time per frame; NaN if the source does not say), ``horizon`` and
-        ``lookahead`` (s, of the config in use), ``noise`` (the filter's position / orientation
+        front-end's time per frame; NaN if the source does not say), ``horizon``,
+        ``rotation_horizon`` (the orientation's: ``horizon`` unless the config sets its own)
+        and ``lookahead`` (s, of the config in use), ``noise`` (the filter's position / orientation
         measurement stds now, m / rad: :meth:`TrackerStream.measurement_noise`) and
         ``noise_raised`` (whether the online noise floor has raised them above the configured
         ones: the source is noisier than assumed), ``send_errors`` (per output URL: packets the
@@ -750,6 +764,9 @@ class LiveTracker:
             "sent_age_p99": _percentile(sent_ages, 99),
             "front_end_p50": _percentile(work, 50),
             "horizon": float(self._config_used.horizon),
+            "rotation_horizon": float(self._config_used.horizon
+                                      if self._config_used.rotation_horizon is None
+                                      else self._config_used.rotation_horizon),
             "lookahead": float(self._config_used.lookahead),
             "noise": noise,
             "noise_raised": raised,

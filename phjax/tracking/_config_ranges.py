@@ -20,7 +20,7 @@ from .._misc import any_traced
 #: 1e30, ``log_q`` 60), at these bounds every field alone gives finite poses.
 _POSITIVE = (1e-12, 1e6)
 CONFIG_RANGES = {
-    **{f"tracker.{n}": _POSITIVE for n in ("horizon", "stop_time")},
+    **{f"tracker.{n}": _POSITIVE for n in ("horizon", "rotation_horizon", "stop_time")},
     "tracker.coast_time": (0.0, 1e6),
     "tracker.lookahead": (-1e6, 1e6),
     "tracker.adapt": (-20.0, 20.0),

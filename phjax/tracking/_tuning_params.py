@@ -121,7 +121,7 @@ def default_parameters(config: TrackerConfig | None = None) -> tuple[str, ...]:
     * single-model filter: :data:`DEFAULT_PARAMETERS` (its process and measurement noise, the
       horizon);
     * IMM filter: every model's ``log_q`` (position and rotation), ``log_switch_rate`` and the
-      ``horizon``. The measurement noise stays as configured: it is a property of the sensor
+      ``horizon``; with ``rotation_horizon`` set, that too. The measurement noise stays as configured: it is a property of the sensor
       (known, or estimated with :func:`phjax.tracking.noise.estimate_measurement_noise`), and
       tuned together with the process noise it leaves a nearly flat direction. Tuning may
       reorder the models' densities; ``TrackerConfig.adapt`` assumes the quietest model first.
@@ -133,11 +133,13 @@ def default_parameters(config: TrackerConfig | None = None) -> tuple[str, ...]:
         Parameter names accepted by :func:`make_problem` and :func:`tune_tracker`.
     """
     config = TrackerConfig() if config is None else config
+    # an orientation horizon of its own is tuned beside the horizon
+    own = ("rotation_horizon",) if config.rotation_horizon is not None else ()
     if config.imm is None:
-        return DEFAULT_PARAMETERS
+        return (*DEFAULT_PARAMETERS, *own)
     models = [f"imm.{part}.{i}.log_q" for part in ("position_models", "rotation_models")
               for i in range(len(getattr(config.imm, part)))]
-    return (*models, "log_switch_rate", "horizon")
+    return (*models, "log_switch_rate", "horizon", *own)
 
 
 def _resolve(config: TrackerConfig, parameters: Sequence[str]) -> tuple[tuple, ...]:

@@ -115,6 +115,11 @@ class TrackerConfig(eqx.Module):
             0.028 s (development set, 30 Hz camera, 120 Hz render: RMSE 1.037x / 1.044x and
             RMS jerk 0.290x / 0.293x of the filter's own constant-velocity extrapolation for
             position / rotation; see ``experiments/tune_baselines.py --horizon-only``).
+        rotation_horizon: the orientation's own settling time, s, or ``None`` (default) for
+            ``horizon``. Position and orientation are independent streams (with ``adapt``
+            nonzero both horizons take the same factor), so each can be as smooth as it
+            needs: ``experiments/display_frontier.py`` chooses the two horizons by one rule,
+            channel by channel, as the baselines' knobs are. Differentiable when set.
         adapt: adaptive settling (IMM only): each segment's horizon is
             ``horizon * exp(adapt (1 - 2 m))``, where ``m`` in [0, 1] is the expected mode index
             of the IMM (0: the quietest model certain, 1: the most agile one), averaged over
@@ -161,6 +166,7 @@ class TrackerConfig(eqx.Module):
     kalman: KalmanConfig = eqx.field(default_factory=KalmanConfig)
     imm: IMMConfig | None = eqx.field(default_factory=IMMConfig)
     horizon: float = 0.028
+    rotation_horizon: float | None = None
     adapt: float = 0.0
     coast_time: float = 0.1
     stop_time: float = 0.05
@@ -171,6 +177,8 @@ class TrackerConfig(eqx.Module):
     def __check_init__(self):
         # concrete values only (a traced config, e.g. inside jax.grad, is the caller's to keep
         # valid); a horizon or stop time of 0 divides by zero: NaN poses, not an error
+        if self.rotation_horizon is not None:
+            check_number_fields(self, (("rotation_horizon", *POSITIVE),))
         check_number_fields(self, (("horizon", *POSITIVE), ("stop_time", *POSITIVE),
                                    ("coast_time", lambda x: x >= 0, " >= 0"),
                                    ("adapt", *FINITE), ("lookahead", *FINITE)))
@@ -203,9 +211,12 @@ class RenderSegment(eqx.Module):
 
     Fields:
         started: whether a valid measurement has been seen (before that samples are NaN).
-        start: ``(2,)`` start times of the segment's two pieces (display time), s.
+        start: ``(2, 2)`` start times of the segment's two pieces (display time), s, for
+            position (row 0) and orientation (row 1): the channels settle on their own
+            horizons (:attr:`TrackerConfig.rotation_horizon`).
+        p_duration: ``(2,)`` durations of the two position pieces, s.
         curve: the two position pieces, a :class:`PHQuintic` batch of 2, each on its own
-            parameter ``s = (t - start) / duration``.
+            parameter ``s = (t - start[0]) / p_duration``.
         rotation: the two orientation pieces, a :class:`QuaternionHermite` batch of 2 (its
             ``duration`` field holds the pieces' durations, s).
         p_end, v_end, q_end, w_end: end pose and velocities of the second piece (``q_end`` with
@@ -214,7 +225,8 @@ class RenderSegment(eqx.Module):
     """
 
     started: Bool[Array, ""]
-    start: Float[Array, "2"]
+    start: Float[Array, "2 2"]
+    p_duration: Float[Array, "2"]
     curve: PHQuintic
     rotation: QuaternionHermite
     p_end: Float[Array, "3"]
@@ -226,9 +238,10 @@ class RenderSegment(eqx.Module):
     lookahead: Float[Array, ""]
 
     @property
-    def end(self) -> Float[Array, ""]:
-        """End time of the segment (of its second piece, display time), s."""
-        return self.start[1] + self.rotation.duration[1]
+    def end(self) -> Float[Array, "2"]:
+        """End times of the segment's position and orientation (of their second pieces,
+        display time), s."""
+        return self.start[:, 1] + jnp.stack([self.p_duration[1], self.rotation.duration[1]])
 
     def evaluate(self, tau: Float[ArrayLike, ""], velocities: bool = True):
         """Rendered pose at one render time ``tau``: the curves' pose at ``tau + lookahead``.
@@ -248,22 +261,27 @@ class RenderSegment(eqx.Module):
         """
         dtype = self.start.dtype
         tau = jnp.asarray(tau, dtype) + self.lookahead
-        i = (tau >= self.start[1]).astype(jnp.int32)
-        curve = jax.tree.map(lambda x: x[i], self.curve)
-        rotation = jax.tree.map(lambda x: x[i], self.rotation)
-        s = jnp.clip((tau - self.start[i]) / rotation.duration, 0, 1)
-        # past the end: coast, then come to rest smoothly
-        delta = jnp.maximum(tau - self.end, 0)
+        # the piece of each channel that covers tau (the second from its start on)
+        i = (tau >= self.start[:, 1]).astype(jnp.int32)
+        start = self.start[jnp.arange(2), i]
+        curve = jax.tree.map(lambda x: x[i[0]], self.curve)
+        rotation = jax.tree.map(lambda x: x[i[1]], self.rotation)
+        dur_p = self.p_duration[i[0]]
+        s_p = jnp.clip((tau - start[0]) / dur_p, 0, 1)
+        s_r = jnp.clip((tau - start[1]) / rotation.duration, 0, 1)
+        # past the end: coast, then come to rest smoothly (each channel from its own end)
+        end = self.end
+        delta = jnp.maximum(tau - end, 0)
         disp, factor = _coast(delta, self.coast_time, self.stop_time)
-        inside = tau <= self.end
+        inside = tau <= end
         nan = jnp.where(self.started, 0.0, jnp.nan).astype(dtype)
-        p = jnp.where(inside, curve.position(s), self.p_end + disp * self.v_end) + nan
-        q_coast = quat_mul(quat_from_rotvec(disp * self.w_end), self.q_end)
-        q = jnp.where(inside, rotation.rotation(s), q_coast) + nan
+        p = jnp.where(inside[0], curve.position(s_p), self.p_end + disp[0] * self.v_end) + nan
+        q_coast = quat_mul(quat_from_rotvec(disp[1] * self.w_end), self.q_end)
+        q = jnp.where(inside[1], rotation.rotation(s_r), q_coast) + nan
         if not velocities:
             return p, None, q, None
-        v = jnp.where(inside, curve.hodograph(s) / rotation.duration, factor * self.v_end) + nan
-        w = jnp.where(inside, rotation.angular_velocity(s), factor * self.w_end) + nan
+        v = jnp.where(inside[0], curve.hodograph(s_p) / dur_p, factor[0] * self.v_end) + nan
+        w = jnp.where(inside[1], rotation.angular_velocity(s_r), factor[1] * self.w_end) + nan
         return p, v, q, w
 
 
@@ -303,9 +321,10 @@ class TrackerState(eqx.Module):
 
     Properties (views): ``t0``, the render time of the last segment start (the last camera
     frame used), s; ``started``, whether a valid measurement has been seen (before that samples are
-    NaN); ``duration`` (2,), the durations of the segment's two pieces, s;
+    NaN); ``duration`` (2, 2), the durations of the segment's two pieces, s, for position
+    (row 0) and orientation (row 1);
     ``curve``, the two position pieces (a :class:`PHQuintic` batch of 2), each on its own
-    parameter ``(t - start) / duration``; ``rotation``, the two orientation pieces (a
+    parameter ``(t - start[0]) / duration[0]``; ``rotation``, the two orientation pieces (a
     :class:`QuaternionHermite` batch of 2).
     """
 
@@ -315,15 +334,15 @@ class TrackerState(eqx.Module):
 
     @property
     def t0(self) -> Float[Array, ""]:
-        return self.segment.start[0] - self.segment.lookahead
+        return self.segment.start[0, 0] - self.segment.lookahead
 
     @property
     def started(self) -> Bool[Array, ""]:
         return self.segment.started
 
     @property
-    def duration(self) -> Float[Array, "2"]:
-        return self.segment.rotation.duration
+    def duration(self) -> Float[Array, "2 2"]:
+        return jnp.stack([self.segment.p_duration, self.segment.rotation.duration])
 
     @property
     def curve(self) -> PHQuintic:
@@ -335,7 +354,8 @@ class TrackerState(eqx.Module):
 
 
 def _make_state(config, kf, t0, duration, curve, rotation, started, ends, noise) -> TrackerState:
-    """A :class:`TrackerState` whose segment starts at ``t0`` with two pieces.
+    """A :class:`TrackerState` whose segment starts at ``t0`` with two pieces per channel of
+    ``duration`` (2, 2) (position, orientation).
 
     ``ends = (p_end, v_end, q_end, w_end)``: the end pose and velocities of the second piece,
     i.e. the Hermite data it was built from (``q_end`` with the sign of its ``rotation(1)``).
@@ -343,7 +363,9 @@ def _make_state(config, kf, t0, duration, curve, rotation, started, ends, noise)
     dtype = t0.dtype
     p_end, v_end, q_end, w_end = ends
     segment = RenderSegment(
-        started=jnp.asarray(started), start=jnp.stack([t0, t0 + duration[0]]), curve=curve,
+        started=jnp.asarray(started), start=jnp.stack([jnp.full((2,), t0), t0 + duration[:, 0]],
+                                                       axis=1),
+        p_duration=duration[0], curve=curve,
         rotation=rotation, p_end=p_end, v_end=v_end, q_end=q_end, w_end=w_end,
         coast_time=jnp.asarray(config.coast_time, dtype),
         stop_time=jnp.asarray(config.stop_time, dtype),
@@ -351,10 +373,12 @@ def _make_state(config, kf, t0, duration, curve, rotation, started, ends, noise)
     return TrackerState(kf, segment, noise)
 
 
-def _segment(p0, v0, q0, w0, p1, v1, q1, w1, duration):
+def _segment(p0, v0, q0, w0, p1, v1, q1, w1, duration, rot_duration=None):
+    """Position and orientation pieces of ``duration`` (the orientation's ``rot_duration``,
+    default the same)."""
     dur = jnp.asarray(duration)[..., None]
     curve = hermite_quintic(p0, p1, v0 * dur, v1 * dur)
-    rot = quaternion_hermite(q0, q1, w0, w1, duration)
+    rot = quaternion_hermite(q0, q1, w0, w1, duration if rot_duration is None else rot_duration)
     return curve, rot
 
 
@@ -400,9 +424,9 @@ def _init(config: TrackerConfig, t) -> TrackerState:
     z3 = jnp.zeros((2, 3), dtype)
     z4 = jnp.zeros((2, 4), dtype)
     q = jnp.broadcast_to(jnp.asarray([1.0, 0, 0, 0], dtype), (2, 4))
-    dur = jnp.full((2,), 0.5, dtype)
+    dur = jnp.full((2, 2), 0.5, dtype)
     curve = PHQuintic(A0=z4, A1=z4, A2=z4, control_points=jnp.zeros((2, 6, 3), dtype))
-    rot = QuaternionHermite(q0=q, w1=z3, w2=z3, w3=z3, duration=dur)
+    rot = QuaternionHermite(q0=q, w1=z3, w2=z3, w3=z3, duration=dur[1])
     noise = noise_monitor_init(dtype) if config.noise_window else None
     return _make_state(config, kf, t, dur, curve, rot, jnp.asarray(False),
                        (z3[0], z3[0], q[0], z3[0]), noise)
@@ -514,6 +538,12 @@ def _adaptive_factor(config: TrackerConfig, kf, dtype):
     return jnp.exp(jnp.asarray(config.adapt, dtype) * (1 - 2 * m))
 
 
+def _horizons(config: TrackerConfig, dtype) -> Float[Array, "2"]:
+    """The configured horizons of position and orientation, s."""
+    rot = config.horizon if config.rotation_horizon is None else config.rotation_horizon
+    return jnp.stack([jnp.asarray(config.horizon, dtype), jnp.asarray(rot, dtype)])
+
+
 def _settle(s):
     """Critically damped decay at ``s`` time constants: weights of the initial offset and of
     the initial rate (per time constant) and their derivatives (per time constant)."""
@@ -555,19 +585,26 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion,
     kf, info = _filter_step(filter_config, state.filter, t, position, quaternion)
     u = t_render + jnp.asarray(config.lookahead, dtype)  # the display time of that pose
     used = info.pos_used | info.rot_used
-    h = jnp.asarray(config.horizon, dtype) * _adaptive_factor(config, kf, dtype)
-    tc = _SETTLE * h  # time constant of the correction
-    t1 = _KNOT * h  # the knot between the two pieces
-    # the filter's prediction for the display time u (its mean when the lookahead is 0)
-    pred = jax.vmap(lambda tau: _filter_predict(config, kf, tau))(jnp.stack([u, u + t1, u + h]))
-    (p_k, p_1, p_T), (q_k, q_1, q_T), (v_k, v_1, v_T), (w_k, w_1, w_T) = pred
+    # the horizons of position and orientation
+    h = _horizons(config, dtype) * _adaptive_factor(config, kf, dtype)
+    tc = _SETTLE * h  # time constants of the corrections
+    t1 = _KNOT * h  # the knots between the two pieces
+    # the filter's predictions for the display time u (its mean when the lookahead is 0), the
+    # knots and the ends (the same instants for both channels with one horizon)
+    times = jnp.stack([u, u + t1[0], u + h[0], u + t1[1], u + h[1]])
+    if config.rotation_horizon is None:
+        times = times[:3]
+    pred = jax.vmap(lambda tau: _filter_predict(config, kf, tau))(times)
+    rot = jnp.array([0, -2, -1])  # orientation: the first instant and its own knot and end
+    (p_k, p_1, p_T), (v_k, v_1, v_T) = pred[0][:3], pred[2][:3]
+    (q_k, q_1, q_T), (w_k, w_1, w_T) = pred[1][rot], pred[3][rot]
     # first frame (and, with config.reacquire, the first after the stream has stopped): start
     # at the filter's estimate at rest
     z = jnp.zeros(3, dtype)
     fresh = ~was_init
     if config.reacquire:  # stopped: past the coasting of the segment as it was rendered
         rest = state.segment.coast_time + state.segment.stop_time
-        fresh = fresh | (u - state.segment.end > rest)
+        fresh = fresh | (u - jnp.max(state.segment.end) > rest)
     p_r = jnp.where(fresh, p_k, p_r)
     v_r = jnp.where(fresh, z, v_r)
     q_r = jnp.where(fresh, q_k, q_r)
@@ -575,18 +612,18 @@ def _update(config: TrackerConfig, state: TrackerState, t, position, quaternion,
     # the correction (rendered minus predicted) decays critically damped; the knot carries it
     a, da, b, db = _settle(jnp.asarray(_KNOT / _SETTLE, dtype))
     dp, dv = p_r - p_k, v_r - v_k
-    p_m = p_1 + a * dp + b * tc * dv
-    v_m = v_1 + da / tc * dp + db * dv
+    p_m = p_1 + a * dp + b * tc[0] * dv
+    v_m = v_1 + da / tc[0] * dp + db * dv
     dq = quat_mul(q_r, quat_conj(q_k))
     dth = quat_to_rotvec(jnp.where(dq[..., :1] < 0, -dq, dq))  # shortest arc
     dw = w_r - w_k
-    q_m = quat_mul(quat_from_rotvec(a * dth + b * tc * dw), q_1)
-    w_m = w_1 + da / tc * dth + db * dw
+    q_m = quat_mul(quat_from_rotvec(a * dth + b * tc[1] * dw), q_1)
+    w_m = w_1 + da / tc[1] * dth + db * dw
     st = lambda x, y: jnp.stack([x, y])  # noqa: E731
-    dur = st(t1, h - t1)
+    dur = jnp.stack([t1, h - t1], axis=1)  # (channel, piece)
     curve, rot = _segment(st(p_r, p_m), st(v_r, v_m), st(q_r, q_m), st(w_r, w_m),
-                          st(p_m, p_T), st(v_m, v_T), st(q_m, q_T), st(w_m, w_T), dur)
-    q_end = _rotation_end(q_m, q_T, w_m, w_T, h - t1)
+                          st(p_m, p_T), st(v_m, v_T), st(q_m, q_T), st(w_m, w_T), dur[0], dur[1])
+    q_end = _rotation_end(q_m, q_T, w_m, w_T, dur[1, 1])
     rebuild = used & kf.initialized
     new = _make_state(config, kf, u, dur, curve, rot, state.started | kf.initialized,
                       (p_T, v_T, q_end, w_T), noise)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -102,6 +103,10 @@ def test_format_choices_rows_and_verdict():
     assert ("rotation: phjax 1.5 deg, the most accurate baseline as smooth is kalman-cv "
             "extrapolation with 1.8 (phjax / it 0.83); alpha-beta extrapolation never as smooth "
             "(at least 2.67x phjax's jerk)") in text
+    # an orientation horizon of its own is named beside the position's
+    own = [dataclasses.replace(rows[0], knobs=(0.028, 0.024)), *rows[1:]]
+    text = format_choices(dataclasses.replace(comp, choices={0.0: own, 0.03: own}))
+    assert text.count("| **phjax (causal)** | horizon 28 / 24 ms | **6.00** |") == 2
 
 
 @pytest.mark.parametrize("has_pos", [True, False])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import signal
@@ -368,14 +369,13 @@ def _lin_rot_motion(n, rate, v, w):
     return t, p, q
 
 
-@pytest.mark.parametrize("lookahead", [0.0, 0.03])
-def test_lost_face_coasts_then_decays_continuously(lookahead):
+@pytest.mark.parametrize("lookahead,rotation_horizon", [(0.0, None), (0.03, None), (0.0, 0.07)])
+def test_lost_face_coasts_then_decays_continuously(lookahead, rotation_horizon):
     """After the last measurement the stream keeps its end velocity for ``coast_time``, then
     the velocity decays as exp(-(t - coast end) / stop_time): position and velocity are
     continuous through both phases (finite differences of consecutive samples at 240 Hz), so
-    a stream that stopped abruptly at the end of the coast would fail here."""
-    import equinox as eqx
-
+    a stream that stopped abruptly at the end of the coast would fail here. With an
+    orientation horizon of its own, each channel coasts from its own segment end."""
     from phjax._np_quat import np_rotvec
 
     rate = 240.0
@@ -383,14 +383,18 @@ def test_lost_face_coasts_then_decays_continuously(lookahead):
     t, p, q = _lin_rot_motion(90, 30.0, v, w)  # 3 s
     lost = t >= 2.0
     p[lost], q[lost] = np.nan, np.nan
-    cfg = eqx.tree_at(lambda c: c.lookahead, live_tracker_config(), lookahead)
+    cfg = dataclasses.replace(live_tracker_config(), lookahead=lookahead,
+                              rotation_horizon=rotation_horizon)
     lt, got = _run(PoseReplaySource(t, p, q), rate, config=cfg, adaptive=False, linger=0.0)
     ts = np.array([s.t for s in got])
     pos = np.array([s.position for s in got])
     quat = np.array([s.quaternion for s in got])
     assert np.isfinite(pos).all() and np.isfinite(quat).all()
     seg = lt.stream.state.segment
-    end = float(seg.end)  # display time at which the last segment ends (2 s + horizon)
+    # display times at which the last segment ends (2 s + horizon): position, orientation
+    ends = np.asarray(seg.end, np.float64)
+    np.testing.assert_allclose(ends[1] - ends[0], (rotation_horizon or cfg.horizon) - cfg.horizon,
+                               atol=1e-9)
     v_end, w_end = np.asarray(seg.v_end), np.asarray(seg.w_end)
     coast, stop = float(cfg.coast_time), float(cfg.stop_time)
     # the end velocities are the motion's (the filter had converged)
@@ -399,10 +403,10 @@ def test_lost_face_coasts_then_decays_continuously(lookahead):
     # finite-difference velocities at the midpoints of consecutive samples (display time)
     vel = np.diff(pos, axis=0) * rate
     omega = np_rotvec(np_qmul(quat[1:], np_qconj(quat[:-1]))) * rate
-    delta = 0.5 * (ts[1:] + ts[:-1]) + lookahead - end  # time past the segment's end
     settled = ts[1:] > 1.0  # after the filter's start-up
-    assert (delta > coast + 6 * stop).sum() > 50 and ((delta > 0) & (delta < coast)).sum() > 20
-    for fd, end_v in ((vel, v_end), (omega, w_end)):
+    for fd, end_v, end in ((vel, v_end, ends[0]), (omega, w_end, ends[1])):
+        delta = 0.5 * (ts[1:] + ts[:-1]) + lookahead - end  # time past the segment's end
+        assert (delta > coast + 6 * stop).sum() > 50 and ((delta > 0) & (delta < coast)).sum() > 20
         scale = np.linalg.norm(end_v)
         # continuity: consecutive finite differences differ by at most the largest change of
         # the exact motion over one step, |v_end| / (stop_time * rate) = 0.083 |v_end|,
@@ -852,3 +856,25 @@ def test_a_failing_log_still_closes_the_source_and_stop_before_start_is_final(tm
     early.stop()
     with pytest.raises(RuntimeError, match="stopped before it started"):
         early.start()
+
+
+@pytest.mark.parametrize("rotation_horizon", [None, 0.06])
+def test_adaptive_settling_lengthens_each_horizon_to_the_measurement_interval(rotation_horizon):
+    """A source at 5 Hz: the runner's adaptive settling sets the horizon (and an orientation
+    horizon of its own, if the config has one) to the interval between measurements, 0.2 s,
+    and ``coast_time`` to 1.5 times the longer one; the configured values are the floor."""
+    t, p, q = smooth_motion(15, 5.0, seed=4)  # 3 s at 5 Hz
+    cfg = dataclasses.replace(live_tracker_config(), rotation_horizon=rotation_horizon)
+    lt, got = _run(PoseReplaySource(t, p, q), 60.0, config=cfg)
+    used = lt._config_used
+    assert lt.error is None and len(got) > 100
+    np.testing.assert_allclose(float(used.horizon), 0.2, rtol=0.16)
+    if rotation_horizon is None:
+        assert used.rotation_horizon is None
+    else:
+        np.testing.assert_allclose(float(used.rotation_horizon), 0.2, rtol=0.16)
+    h = max(float(used.horizon), float(used.rotation_horizon or 0))
+    assert float(used.coast_time) == pytest.approx(max(float(cfg.coast_time), 1.5 * h))
+    stats = lt.stats()
+    assert stats["horizon"] == float(used.horizon)
+    assert stats["rotation_horizon"] == float(used.rotation_horizon or used.horizon)

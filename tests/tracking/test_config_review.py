@@ -220,6 +220,7 @@ def test_non_finite_metadata_is_written_as_json_null(tmp_path):
     (lambda: pj.TrackerConfig(imm=None, kalman=pj.KalmanConfig(pos_meas_noise=1e30)),
      r"TrackerConfig\.kalman\.pos_meas_noise = 1e\+30 is out of range \[1e-12, 1e\+06\]"),
     (lambda: pj.TrackerConfig(horizon=1e30), r"TrackerConfig\.horizon = 1e\+30"),
+    (lambda: pj.TrackerConfig(rotation_horizon=1e30), r"TrackerConfig\.rotation_horizon = 1e\+30"),
     (lambda: pj.TrackerConfig(imm=IMMConfig(position_models=(ConstantVelocity(log_q=60.0),),
                                             rotation_models=(ConstantVelocity(log_q=-5.0),))),
      r"TrackerConfig\.imm\.position_models\[0\]\.log_q = 60\.0 is out of range \[-50, 50\]"),

@@ -123,17 +123,21 @@ def test_stream_config_arrays_and_state_round_trip(meas):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
-def test_stream_sample_is_the_curve_objects_evaluation(meas, dtype):
+@pytest.mark.parametrize("dtype,rotation_horizon", [(jnp.float64, None), (jnp.float32, None),
+                                                    (jnp.float64, 0.05), (jnp.float32, 0.012)])
+def test_stream_sample_is_the_curve_objects_evaluation(meas, dtype, rotation_horizon):
     """Inside the segment a sample is the ``PHQuintic`` / ``QuaternionHermite`` piece that
-    covers the time, evaluated at ``(t - start) / duration`` (the second piece from its start
-    on); past the end it coasts from the end pose: position ``p_end + v_end dt`` and
-    orientation ``exp(w_end dt / 2) q_end`` (rotation vector ``w_end dt``, checked with SciPy)
-    during ``coast_time``."""
+    covers the time, evaluated at ``(t - start) / duration`` of its channel (the second piece
+    from its start on); past the end it coasts from the end pose: position
+    ``p_end + v_end dt`` and orientation ``exp(w_end dt / 2) q_end`` (rotation vector
+    ``w_end dt``, checked with SciPy) during ``coast_time``. With a ``rotation_horizon`` of its
+    own the orientation's pieces last ``0.4`` and ``0.6`` of it, the position's of ``horizon``."""
     from scipy.spatial.transform import Rotation
 
     mt, mp, mq = meas
-    s = pj.TrackerStream(dtype=dtype)
+    config = pj.TrackerConfig(rotation_horizon=rotation_horizon)
+    h = np.array([config.horizon, rotation_horizon or config.horizon])
+    s = pj.TrackerStream(config, dtype=dtype)
     tol = 1e-12 if dtype == jnp.float64 else 2e-6
     for k in range(12):
         s.update(float(mt[k]), mp[k], mq[k])
@@ -141,24 +145,30 @@ def test_stream_sample_is_the_curve_objects_evaluation(meas, dtype):
         if not bool(st.started):
             continue
         t0, dur = float(st.t0), np.asarray(st.duration, np.float64)
-        starts = [t0, float(st.segment.start[1])]
-        end = starts[1] + dur[1]
+        np.testing.assert_allclose(dur, np.stack([0.4 * h, 0.6 * h], axis=1), rtol=10 * tol)
+        starts = np.asarray(st.segment.start, np.float64)  # (channel, piece)
+        np.testing.assert_allclose(starts[:, 0], t0, rtol=tol)
         for i in range(2):
-            for frac in (0.0, 0.3, 0.999):
-                tau = starts[i] + frac * dur[i]
-                piece = jax.tree.map(lambda x, i=i: x[i], st.curve)
-                rot = jax.tree.map(lambda x, i=i: x[i], st.rotation)
-                u = (jnp.asarray(tau, dtype) - st.segment.start[i]) / st.duration[i]
-                p, q = s.sample(jnp.asarray(tau, dtype))
-                np.testing.assert_allclose(np.asarray(p), np.asarray(piece.position(u)),
-                                           rtol=tol, atol=tol)
-                np.testing.assert_allclose(np.asarray(q), np.asarray(rot.rotation(u)),
-                                           rtol=tol, atol=tol)
+            for ch in range(2):
+                for frac in (0.0, 0.3, 0.999):
+                    tau = starts[ch, i] + frac * dur[ch, i]
+                    u = (jnp.asarray(tau, dtype) - st.segment.start[ch, i]) / st.duration[ch, i]
+                    p, q = s.sample(jnp.asarray(tau, dtype))
+                    if ch == 0:
+                        piece = jax.tree.map(lambda x, i=i: x[i], st.curve)
+                        np.testing.assert_allclose(np.asarray(p), np.asarray(piece.position(u)),
+                                                   rtol=tol, atol=tol)
+                    else:
+                        rot = jax.tree.map(lambda x, i=i: x[i], st.rotation)
+                        np.testing.assert_allclose(np.asarray(q), np.asarray(rot.rotation(u)),
+                                                   rtol=tol, atol=tol)
         seg = st.segment
         dt = 0.5 * float(seg.coast_time)
-        p, q = (np.asarray(x, np.float64) for x in s.sample(jnp.asarray(end + dt, dtype)))
+        end = starts[:, 1] + dur[:, 1]
+        p = np.asarray(s.sample(jnp.asarray(end[0] + dt, dtype))[0], np.float64)
         np.testing.assert_allclose(p, np.asarray(seg.p_end) + dt * np.asarray(seg.v_end),
                                    atol=10 * tol)
+        q = np.asarray(s.sample(jnp.asarray(end[1] + dt, dtype))[1], np.float64)
         q_end = np.asarray(seg.q_end, np.float64)
         r = Rotation.from_rotvec(dt * np.asarray(seg.w_end, np.float64)) * Rotation.from_quat(
             q_end[[1, 2, 3, 0]])

@@ -74,17 +74,18 @@ def _one_sided(x, eps, side):
     return side * (-3 * x[..., 0, :] + 4 * x[..., 1, :] - x[..., 2, :]) / (2 * eps)
 
 
-@pytest.mark.parametrize("lookahead", [0.0, 0.04])
-def test_stream_is_c1_across_camera_frames(head, lookahead):
+@pytest.mark.parametrize("lookahead,rotation_horizon", [(0.0, None), (0.04, None), (0.02, 0.05)])
+def test_stream_is_c1_across_camera_frames(head, lookahead, rotation_horizon):
     """Position, velocity, orientation and the world-frame angular velocity *vector* are
     continuous across every camera frame (finite differences of ``track``'s samples; comparing
     angular speeds only would miss an angular velocity taken in the wrong frame), also when
-    the stream shows the pose predicted for a later display time."""
+    the stream shows the pose predicted for a later display time and when the orientation
+    settles on a horizon of its own."""
     _, _, _, mt, mp, mq = head
     ok = np.isfinite(mp).all(-1)
     tb = mt[ok][2:-2]
     r = np.sort(np.concatenate([tb - 2 * EPS, tb - EPS, tb, tb + EPS]))
-    cfg = pj.TrackerConfig(lookahead=lookahead)
+    cfg = pj.TrackerConfig(lookahead=lookahead, rotation_horizon=rotation_horizon)
     P, Q = (np.asarray(x) for x in pj.track(mt, mp, mq, r, config=cfg, dtype=jnp.float64))
     P, Q = P.reshape(-1, 4, 3), Q.reshape(-1, 4, 4)
     speed = np.linalg.norm((P[:, 3] - P[:, 2]) / EPS, axis=-1)
@@ -102,16 +103,21 @@ def test_stream_is_c1_across_camera_frames(head, lookahead):
     assert np.asarray(pj.quat_geodesic_distance(Q[:, 1], Q[:, 2])).max() < 5 * EPS * (1 + w_max)
 
 
-def test_segment_starts_at_the_rendered_state_and_correction_decays(head):
+@pytest.mark.parametrize("rotation_horizon", [None, 0.045])
+def test_segment_starts_at_the_rendered_state_and_correction_decays(head, rotation_horizon):
     """Each camera frame starts a segment at the pose, velocity and world angular velocity
     rendered just before it (taken from the *previous* state's samples by finite differences,
     not from the tracker's formulas); the correction c = rendered - predicted then follows the
     documented critically damped law (c0 (1 + s) + c0' t) exp(-s), s = t / (horizon / 5), at the
-    knot (0.4 horizon), the stream is C1 there and reaches the prediction at the horizon."""
+    knot (0.4 horizon), the stream is C1 there and reaches the prediction at the horizon; the
+    orientation on its own ``rotation_horizon`` when one is set."""
     _, _, _, mt, mp, mq = head
-    cfg = pj.TrackerConfig(imm=None)  # the single-model filter: predict_pose below
+    # the single-model filter: predict_pose below
+    cfg = pj.TrackerConfig(imm=None, rotation_horizon=rotation_horizon)
     h = cfg.horizon
     T, t1 = h / 5, 0.4 * h
+    hr = h if rotation_horizon is None else rotation_horizon
+    Tr, t1r = hr / 5, 0.4 * hr
     e = np.exp(-2.0)  # s = t1 / T = 2
     eps = 1e-5
     steps = np.arange(3) * eps
@@ -139,7 +145,9 @@ def test_segment_starts_at_the_rendered_state_and_correction_decays(head):
         # the documented correction law at the knot, from those independent start values
         pk, qk, vk, wk = (np.asarray(x) for x in pj.predict_pose(cfg.kalman, state.filter, t))
         p1, q1, v1, _ = (np.asarray(x) for x in pj.predict_pose(cfg.kalman, state.filter, t + t1))
-        pT, qT, _, _ = (np.asarray(x) for x in pj.predict_pose(cfg.kalman, state.filter, t + h))
+        pT, _, _, _ = (np.asarray(x) for x in pj.predict_pose(cfg.kalman, state.filter, t + h))
+        _, q1r, _, _ = (np.asarray(x) for x in pj.predict_pose(cfg.kalman, state.filter, t + t1r))
+        _, qT, _, _ = (np.asarray(x) for x in pj.predict_pose(cfg.kalman, state.filter, t + hr))
         # samples on both sides of the knot (C1 only: one-sided differences)
         around = [np.asarray(x) for x in pj.tracker_sample(
             cfg, state, t + t1 + np.concatenate([-steps, steps]))]
@@ -152,14 +160,18 @@ def test_segment_starts_at_the_rendered_state_and_correction_decays(head):
         np.testing.assert_allclose(vl, vr, atol=1e-4 * (1 + np.abs(vr).max()))
         dq = np.asarray(pj.quat_mul(q_r, pj.quat_conj(qk)))
         dth = np.asarray(pj.quat_to_rotvec(dq if dq[0] >= 0 else -dq))
-        q_want = np.asarray(pj.quat_mul(pj.quat_from_rotvec(3 * e * dth + 2 * e * T * (w_r - wk)), q1))
-        assert float(pj.quat_geodesic_distance(around[1][3], q_want)) < 1e-10
-        q_k = around[1][3]
-        wl = 2 * np.asarray(pj.quat_mul(_one_sided(around[1][:3], eps, -1), pj.quat_conj(q_k)))[1:]
-        wr = 2 * np.asarray(pj.quat_mul(_one_sided(around[1][3:], eps, 1), pj.quat_conj(q_k)))[1:]
+        q_want = np.asarray(pj.quat_mul(pj.quat_from_rotvec(3 * e * dth + 2 * e * Tr * (w_r - wk)),
+                                        q1r))
+        around_r = np.asarray(pj.tracker_sample(
+            cfg, state, t + t1r + np.concatenate([-steps, steps]))[1])
+        assert float(pj.quat_geodesic_distance(around_r[3], q_want)) < 1e-10
+        q_k = around_r[3]
+        wl = 2 * np.asarray(pj.quat_mul(_one_sided(around_r[:3], eps, -1), pj.quat_conj(q_k)))[1:]
+        wr = 2 * np.asarray(pj.quat_mul(_one_sided(around_r[3:], eps, 1), pj.quat_conj(q_k)))[1:]
         np.testing.assert_allclose(wl, wr, atol=1e-4 * (1 + np.abs(wr).max()))
-        # the prediction is reached at the horizon
-        p_h, q_h = (np.asarray(x) for x in pj.tracker_sample(cfg, state, t + h))
+        # the prediction is reached at the horizon (each channel's own)
+        p_h = np.asarray(pj.tracker_sample(cfg, state, t + h)[0])
+        q_h = np.asarray(pj.tracker_sample(cfg, state, t + hr)[1])
         np.testing.assert_allclose(p_h, pT, atol=1e-12)
         assert float(pj.quat_geodesic_distance(q_h, qT)) < 1e-10
         checked += 1
@@ -375,8 +387,9 @@ def test_gradient_through_track_wrt_config(head):
     class with lost frames 1 s apart and has a 12 s dropout, so the stream coasts to rest
     (velocities decaying to ~1e-100) and the IMM predicts for seconds. Both made the gradient
     NaN (in the unused segment built at a lost frame, then in the segment after the dropout)
-    until the PH construction ran on data of scale 1. The horizon and lookahead derivatives
-    are checked against central differences."""
+    until the PH construction ran on data of scale 1. The derivatives in the horizon, the
+    lookahead and an orientation horizon of its own are checked against central
+    differences."""
     _, _, _, mt, mp, mq = head
     k = 40
     mt = np.concatenate([mt[:k], mt[k:k + 20] + 12.0]) - mt[0]
@@ -384,16 +397,17 @@ def test_gradient_through_track_wrt_config(head):
     r = np.concatenate([np.arange(0.05, mt[k - 1], 1 / 60), np.arange(mt[k], mt[-1], 1 / 60)])
     gt = np.asarray(pj.track(mt, mp, mq, r, dtype=jnp.float64)[0]) + 0.001
 
-    def loss(horizon, lookahead):
-        cfg = pj.TrackerConfig(horizon=horizon, lookahead=lookahead)
+    def loss(horizon, lookahead, rotation_horizon):
+        cfg = pj.TrackerConfig(horizon=horizon, lookahead=lookahead,
+                               rotation_horizon=rotation_horizon)
         P, Q = pj.track(mt, mp, mq, r, config=cfg, dtype=jnp.float64)
         return jnp.mean((P - gt) ** 2) + jnp.mean(Q[:, 1] ** 2)
 
-    g = jax.grad(loss, argnums=(0, 1))(0.05, 0.02)
-    assert all(np.isfinite(float(x)) and float(x) != 0 for x in g), g
+    x = np.array([0.05, 0.02, 0.035])
+    g = jax.grad(loss, argnums=(0, 1, 2))(*x)
+    assert all(np.isfinite(float(v)) and float(v) != 0 for v in g), g
     h = 1e-6
-    num = [(loss(0.05 + h, 0.02) - loss(0.05 - h, 0.02)) / (2 * h),
-           (loss(0.05, 0.02 + h) - loss(0.05, 0.02 - h)) / (2 * h)]
+    num = [(loss(*(x + h * e)) - loss(*(x - h * e))) / (2 * h) for e in np.eye(3)]
     np.testing.assert_allclose(np.asarray(g, float), np.asarray(num, float), rtol=1e-4)
 
 
