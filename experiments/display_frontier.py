@@ -3,7 +3,8 @@
     python experiments/display_frontier.py [--lookaheads 0 20 50] [--seconds 15] [--quick]
                                            [--out results/display_frontier] [--render-phase 0.5]
                                            [--draws 3] [--draw K] [--noise-seed shared]
-                                           [--tune-one-euro-dcutoff] [--all-rooms]
+                                           [--tune-one-euro-dcutoff] [--tune-alpha-beta-beta]
+                                           [--all-rooms]
                                            [--data DIR | --recordings FILE [FILE ...]]
 
 A headset or game shows a frame some 20-50 ms after the pose is read; every method here predicts
@@ -201,12 +202,31 @@ def _thin(grid, small: bool):
 #: One Euro's derivative cutoffs (Hz) swept with ``--tune-one-euro-dcutoff`` (else 1 Hz, the
 #: library default: the cutoff of the velocity the extrapolation uses)
 D_CUTOFFS = (0.3, 1.0, 2.0, 3.0, 5.0)
+#: alpha-beta's gains swept
+ALPHAS = [0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.65, 0.8]
+#: alpha-beta's velocity gains swept with ``--tune-alpha-beta-beta``, as multiples of the
+#: Benedict-Bordner ``beta = alpha^2 / (2 - alpha)`` (else 1: that beta; every one of them is
+#: inside the filter's stability region ``beta < 4 - 2 alpha`` for the alphas swept)
+AB_BETAS = (0.25, 0.5, 1.0, 2.0, 4.0)
 
 
-def baseline_methods(L: float, small: bool = False, dcutoff: bool = False) -> dict:
+def _alpha_beta(L: float):
+    """knob -> fn(t, p, q, r) of alpha-beta extrapolation to ``L`` ahead: the knob is ``alpha``
+    (Benedict-Bordner beta) or ``(alpha, beta / Benedict-Bordner beta)``."""
+    def make(k):
+        a, f = (k, None) if np.ndim(k) == 0 else k
+        beta = None if f is None else f * a * a / (2 - a)
+        return lambda t, p, q, r: baselines.alpha_beta(t, p, q, r, alpha=a, beta=beta,
+                                                       lookahead=L)
+    return make
+
+
+def baseline_methods(L: float, small: bool = False, dcutoff: bool = False,
+                     ab_beta: bool = False) -> dict:
     """name -> (knob grid, knob -> fn(t, p, q, r)), every method predicting ``L`` ahead (the
     grids of ``frontier.py``; ``small``: every third value, for smoke runs; ``dcutoff``: One
-    Euro's knob is ``(min_cutoff, beta, d_cutoff)`` over :data:`D_CUTOFFS` too)."""
+    Euro's knob is ``(min_cutoff, beta, d_cutoff)`` over :data:`D_CUTOFFS` too; ``ab_beta``:
+    alpha-beta's knob is ``(alpha, beta factor)`` over :data:`AB_BETAS` too)."""
     def kalman(s):
         cfg = KalmanConfig(pos_process_noise=0.03 * s, rot_process_noise=0.3 * s)
         return lambda t, p, q, r: baselines.kalman_extrapolation(t, p, q, r, config=cfg,
@@ -220,9 +240,8 @@ def baseline_methods(L: float, small: bool = False, dcutoff: bool = False) -> di
     return {
         "kalman-cv extrapolation": (_thin(F.SCALES, small), kalman),
         "alpha-beta extrapolation": (
-            _thin([0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.65, 0.8], small),
-            lambda a: (lambda t, p, q, r: baselines.alpha_beta(t, p, q, r, alpha=a,
-                                                               lookahead=L))),
+            _thin([(a, f) for a in ALPHAS for f in AB_BETAS] if ab_beta else ALPHAS, small),
+            _alpha_beta(L)),
         "one-euro + extrapolation": (
             _thin([(m, b, d) for m, b in F.ONE_EURO for d in D_CUTOFFS] if dcutoff
                   else F.ONE_EURO, small),
@@ -243,7 +262,7 @@ def tuned_imm(kp, kr) -> IMMConfig:
 
 
 def measure(data, L: float, train: list[int], log=print, small: bool = False,
-            options: dict | None = None, dcutoff: bool = False) -> dict:
+            options: dict | None = None, dcutoff: bool = False, ab_beta: bool = False) -> dict:
     """Every method's sweep at lookahead ``L``, its tuned knob and the stream's operating
     point (``small``: thinned grids, for smoke runs; ``options``: ``TrackerConfig`` fields of
     the swept stream, e.g. ``{"reacquire": True}``; the shipped default's row keeps none).
@@ -254,7 +273,7 @@ def measure(data, L: float, train: list[int], log=print, small: bool = False,
     t0 = time.time()
     hold = run(data, baselines.hold, L)
     runs, tuned = {}, {}
-    for name, (grid, make) in baseline_methods(L, small, dcutoff).items():
+    for name, (grid, make) in baseline_methods(L, small, dcutoff, ab_beta).items():
         for k in grid:
             runs[(name, k)] = run(data, make(k), L)
         tuned[name] = tuple(
@@ -621,6 +640,9 @@ def main(argv=None):
     ap.add_argument("--tune-one-euro-dcutoff", action="store_true",
                     help="tune One Euro's derivative cutoff too (over 0.3-5 Hz; default: fixed "
                     "at the library's 1 Hz)")
+    ap.add_argument("--tune-alpha-beta-beta", action="store_true",
+                    help="tune alpha-beta's velocity gain too (0.25-4 x the Benedict-Bordner "
+                    "beta; default: that beta)")
     ap.add_argument("--all-rooms", action="store_true",
                     help="the 'TUM VI rooms' rows over every room, train ones included (the "
                     "tables before 2026-12-01; default: the test split's rooms only)")
@@ -707,7 +729,8 @@ def main(argv=None):
                 print(f"sensor draw {k} ({draws.index(k) + 1} of {len(draws)})", flush=True)
             t1 = time.time()
             results = {L: measure(data, L, _split(data, False)[0], small=args.smoke,
-                                  options=options, dcutoff=args.tune_one_euro_dcutoff)
+                                  options=options, dcutoff=args.tune_one_euro_dcutoff,
+                                  ab_beta=args.tune_alpha_beta_beta)
                        for L in lookaheads}
             runs.append(dict(draw=k, data=[{key: d[key] for key in ("name", "kind")}
                                            for d in data],
@@ -717,11 +740,13 @@ def main(argv=None):
             pickle.dump({"draws": runs, "wall": time.time() - t0, "seconds": args.seconds,
                          "render_phase": args.render_phase,
                          "protocol": {k: getattr(args, k) for k in (
-                             "noise_seed", "tune_one_euro_dcutoff", "all_rooms")}}, fh)
+                             "noise_seed", "tune_one_euro_dcutoff", "tune_alpha_beta_beta",
+                             "all_rooms")}}, fh)
     protocol = [x for x, on in (
         ("sensor seed shared by every recording (--noise-seed shared)",
          args.noise_seed == "shared"),
         ("One Euro d_cutoff tuned", args.tune_one_euro_dcutoff),
+        ("alpha-beta beta tuned", args.tune_alpha_beta_beta),
         ("TUM VI rooms of both splits (--all-rooms)", args.all_rooms)) if on]
     head = ""
     if options:

@@ -555,6 +555,30 @@ def test_display_frontier_over_sensor_draws_agrees_with_each_draw(tmp_path):
     assert "Sensor draw 2: seed 2 for every recording" in text
 
 
+def test_display_frontier_alpha_beta_beta_knob():
+    """``--tune-alpha-beta-beta``: alpha-beta's knob becomes ``(alpha, factor)``, the velocity
+    gain ``factor`` times Benedict-Bordner's; factor 1 is the default filter, another factor
+    another filter; without the option the grid is the alphas alone."""
+    import display_frontier as dfr
+
+    import phjax as pj
+
+    grid, make = dfr.baseline_methods(0.02)["alpha-beta extrapolation"]
+    assert grid == dfr.ALPHAS
+    grid_b, make_b = dfr.baseline_methods(0.02, ab_beta=True)["alpha-beta extrapolation"]
+    assert len(grid_b) == len(dfr.ALPHAS) * len(dfr.AB_BETAS) and (0.5, 1.0) in grid_b
+    assert all(f * a * a / (2 - a) < 4 - 2 * a for a, f in grid_b)  # stable
+    t, p, q = pj.synthetic_head_motion(duration=2.0, seed=0)
+    mt, mp, mq = (np.asarray(x) for x in pj.simulate_measurements(0, t, p, q))
+    r = np.arange(0.2, 1.9, 1 / 120)
+    ref = [np.asarray(x) for x in make(0.5)(mt, mp, mq, r)]
+    same = [np.asarray(x) for x in make_b((0.5, 1.0))(mt, mp, mq, r)]
+    other = [np.asarray(x) for x in make_b((0.5, 4.0))(mt, mp, mq, r)]
+    for a, b, c in zip(ref, same, other):
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-12)
+        assert np.abs(c - a).max() > 1e-4
+
+
 def test_display_frontier_horizon_per_channel_follows_each_channels_jerk_rule():
     """The per-channel reading of the stream's sweep: position takes the best train position
     RMSE among the horizons whose train position jerk is within 1/3 of the Kalman CV's,
@@ -758,7 +782,8 @@ def test_display_frontier_stream_options_reach_the_swept_stream(tmp_path, monkey
     class Measured(Exception):
         pass
 
-    def measure(data, L, train, log=print, small=False, options=None, dcutoff=False):
+    def measure(data, L, train, log=print, small=False, options=None, dcutoff=False,
+                ab_beta=False):
         seen.append(options)
         raise Measured
 

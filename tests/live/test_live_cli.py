@@ -79,13 +79,19 @@ def test_acceptance_synthetic_opentrack(listener, model_cache, tmp_path, cli_jax
     # rate and jitter
     assert 0.9 * rate <= (n - 1) / span <= 1.1 * rate
     assert np.percentile(iv, 99) <= 3.0 / rate
-    # smoothness: no step above 1 cm or 2 degrees between consecutive datagrams
-    steps_cm = np.abs(np.diff(vals[:, :3], axis=0)).max()
-    steps_deg = angle_steps(vals[:, 3:]).max()
-    worst = int(np.argmax(angle_steps(vals[:, 3:]).max(1)))
-    print(f"largest step {steps_cm:.3f} cm, {steps_deg:.3f} deg (at t = {sent.times[worst]:.2f}"
-          f" s); 99th percentile {np.percentile(angle_steps(vals[:, 3:]).max(1), 99):.3f} deg")
-    assert steps_cm <= 1.0 and steps_deg <= 2.0
+    # smoothness: no step above 1 cm or 2 degrees per render period between consecutive
+    # datagrams. Per period of the poses' own times: a render sample that missed its deadline
+    # (a stalled host; the rate and jitter bounds above limit those) leaves a gap over which
+    # the head really moves (seen in CI on 2026-12-01: 3.3 deg across a 46 ms gap of a 60 deg/s
+    # turn, 0.8 deg at the 99th percentile), a jump does not
+    periods = np.maximum(np.diff(sent.times) * rate, 1.0)[:, None]
+    step_cm = np.abs(np.diff(vals[:, :3], axis=0)) / periods
+    step_deg = angle_steps(vals[:, 3:]) / periods
+    worst = int(np.argmax(step_deg.max(1)))
+    print(f"largest step per period {step_cm.max():.3f} cm, {step_deg.max():.3f} deg (at t = "
+          f"{sent.times[worst]:.2f} s, {periods[worst, 0]:.1f} periods); 99th percentile "
+          f"{np.percentile(step_deg.max(1), 99):.3f} deg")
+    assert step_cm.max() <= 1.0 and step_deg.max() <= 2.0
     # the head's turns are visible: each angle follows the ground truth
     truth = _gt_opentrack(sent.times)
     for j, name in enumerate(("yaw", "pitch", "roll")):
