@@ -267,8 +267,8 @@ def measure(data, L: float, train: list[int], log=print, small: bool = False,
     point (``small``: thinned grids, for smoke runs; ``options``: ``TrackerConfig`` fields of
     the swept stream, e.g. ``{"reacquire": True}``; the shipped default's row keeps none).
     Returns ``dict(runs={(method, knob): rows}, tuned={method: (pos knob, rot knob)},
-    hold=rows, stream_config=TrackerConfig, per_channel_config=TrackerConfig)``: the
-    one-horizon stream's and the stream with a horizon per channel."""
+    hold=rows, stream_config=TrackerConfig)``; the per-channel stream's horizons are
+    ``tuned[PER_CHANNEL]``."""
     options = options or {}
     t0 = time.time()
     hold = run(data, baselines.hold, L)
@@ -303,7 +303,7 @@ def measure(data, L: float, train: list[int], log=print, small: bool = False,
     tuned[DEFAULT] = (d.horizon, d.horizon)
     log(f"L = {1e3 * L:g} ms: phjax stream horizon {h} ({time.time() - t0:.0f} s)")
     return dict(runs=runs, tuned=tuned, hold=hold,
-                stream_config=dataclasses.replace(base, horizon=h), per_channel_config=own)
+                stream_config=dataclasses.replace(base, horizon=h))
 
 
 # ---------------------------------------------------------------------------------- analysis
