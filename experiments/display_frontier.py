@@ -109,7 +109,8 @@ RATE, RENDER, WARMUP, LAGS = F.RATE, F.RENDER, F.WARMUP, F.LAGS
 #: horizons of the phjax stream (s): the frontier's grid, extended towards heavy smoothing
 HORIZONS = F.HORIZONS + [0.1, 0.125]
 #: the external baselines (the IMM extrapolation is phjax's own filter)
-EXTERNAL = ("kalman-cv extrapolation", "alpha-beta extrapolation", "one-euro + extrapolation")
+EXTERNAL = ("kalman-cv extrapolation", "alpha-beta extrapolation", "desp extrapolation",
+            "one-euro + extrapolation")
 IMM = "imm extrapolation"
 STREAM = "phjax stream"
 #: the stream as shipped (default TrackerConfig: default IMM, horizon 28 ms) with the lookahead
@@ -242,6 +243,10 @@ def baseline_methods(L: float, small: bool = False, dcutoff: bool = False,
         "alpha-beta extrapolation": (
             _thin([(a, f) for a in ALPHAS for f in AB_BETAS] if ab_beta else ALPHAS, small),
             _alpha_beta(L)),
+        "desp extrapolation": (
+            _thin(F.DESP_AS, small),
+            lambda a: (lambda t, p, q, r: baselines.double_exponential(t, p, q, r, alpha=a,
+                                                                       lookahead=L))),
         "one-euro + extrapolation": (
             _thin([(m, b, d) for m, b in F.ONE_EURO for d in D_CUTOFFS] if dcutoff
                   else F.ONE_EURO, small),
@@ -450,7 +455,7 @@ def report(data, results: dict, names, train, splits, seconds, wall,
               "1.00 at jerk <= 1/3.", "",
               *header]
     short = {"kalman-cv extrapolation": "Kalman CV", "alpha-beta extrapolation": "alpha-beta",
-             "one-euro + extrapolation": "One Euro + extrap."}
+             "desp extrapolation": "DESP", "one-euro + extrapolation": "One Euro + extrap."}
     summary = {}
 
     def rc(v):  # "-": no recording of the split measures the channel
@@ -866,7 +871,7 @@ def draws_report(runs, summaries, seconds, phase, wall) -> str:
     """The target table over sensor draws: per lookahead and split, each ratio's value in every
     draw, its mean and 95 % interval over the draws, and in how many draws the target holds."""
     short = {"kalman-cv extrapolation": "KF", "alpha-beta extrapolation": "ab",
-             "one-euro + extrapolation": "1e", "-": "-"}
+             "desp extrapolation": "DE", "one-euro + extrapolation": "1e", "-": "-"}
     ks = [r["draw"] for r in runs]
     data = runs[0]["data"]
     lines = ["# Accuracy / smoothness / lag frontier at the display time, over sensor draws", "",
@@ -877,8 +882,8 @@ def draws_report(runs, summaries, seconds, phase, wall) -> str:
                                                      else f"offset {phase:g} render periods")
              + ".", "",
              "Each cell: mean over draws [95 % Student t interval over draws] and the values "
-             "per draw (strongest external baseline per draw: KF Kalman CV, ab alpha-beta, 1e "
-             "One Euro + extrapolation). RMSE columns are phjax (or the IMM extrapolation) / "
+             "per draw (strongest external baseline per draw: KF Kalman CV, ab alpha-beta, DE "
+             "LaViola's DESP, 1e One Euro + extrapolation). RMSE columns are phjax (or the IMM extrapolation) / "
              "strongest external baseline; jerk / tuned Kalman CV; lag - Kalman CV, ms. The "
              "interval covers the sensor's randomness on these recordings, not the choice of "
              "recordings. Target at 20 and 50 ms: RMSE <= 1.00 at jerk <= 1/3; 'met' counts "

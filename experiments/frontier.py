@@ -194,6 +194,9 @@ def _one_euro_pair(fn):
 
 # knob grids reach from heavy smoothing (for the equal-smoothness comparison) to light
 SCALES = [0.001, 0.01, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0]
+#: LaViola's DESP smoothing constants (``baselines.double_exponential``: alpha-beta with
+#: ``alpha = a (2 - a)``, ``beta = a^2``; alpha from 0.02 to 0.91, as alpha-beta's grid)
+DESP_AS = [0.01, 0.03, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.55, 0.7]
 ONE_EURO = [(m, b) for b in (0.1, 1.0, 10.0, 100.0) for m in (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0)]
 
 
@@ -208,6 +211,10 @@ def baseline_methods():
         "alpha-beta extrapolation": (
             [0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.65, 0.8], lambda a: (
                 lambda t, p, q, r: baselines.alpha_beta(t, p, q, r, alpha=a)), "alpha"),
+        "desp extrapolation": (
+            DESP_AS, lambda a: (
+                lambda t, p, q, r: baselines.double_exponential(t, p, q, r, alpha=a)),
+            "LaViola's a"),
         "one-euro + hold": (ONE_EURO, _one_euro_pair(baselines.one_euro), "(min_cutoff, beta)"),
         "one-euro + extrapolation": (ONE_EURO, _one_euro_pair(baselines.one_euro_extrapolation),
                                      "(min_cutoff, beta)"),
@@ -485,7 +492,7 @@ def main(argv=None):
                       imm_make(tuned["imm extrapolation"][1]))]
     phase_methods += [(m, methods[m][1](tuned[m][0]), methods[m][1](tuned[m][1]))
                       for m in ("kalman-cv extrapolation", "alpha-beta extrapolation",
-                                "one-euro + extrapolation")]
+                                "desp extrapolation", "one-euro + extrapolation")]
     lines += ["## RMSE per render phase (test split, medians over recordings)", "",
               (f"Render phase k: samples k render periods after the latest camera frame time "
                f"(render clock offset {args.render_phase:g} periods). Position mm / rotation deg."),

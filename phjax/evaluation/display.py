@@ -102,10 +102,14 @@ def _kalman(kp, kr, L):
     return lambda t, p, q, r: baselines.kalman_extrapolation(t, p, q, r, config=cfg, lookahead=L)
 
 
-def _alpha_beta(kp, kr, L):
-    def one(a):
-        return lambda t, p, q, r: baselines.alpha_beta(t, p, q, r, alpha=a, lookahead=L)
-    return one(kp) if kp == kr else _split_channels(one(kp), one(kr))
+def _gain(method):
+    """``make`` of a baseline whose knob is its own gain ``alpha`` (alpha-beta's alpha,
+    LaViola's DESP ``a``)."""
+    def make(kp, kr, L):
+        def one(a):
+            return lambda t, p, q, r: method(t, p, q, r, alpha=a, lookahead=L)
+        return one(kp) if kp == kr else _split_channels(one(kp), one(kr))
+    return make
 
 
 def _one_euro_x(kp, kr, L):
@@ -139,11 +143,13 @@ def _imm(sp, sr, L):
 #: The baselines of the comparison, each with its knob: the Kalman CV's process noise, the One
 #: Euro's two cutoff parameters and the IMM's model densities as multiples of their tuned
 #: values (:data:`phjax.tracking.baselines.TUNED`; the IMM: its default model set), alpha-beta's
-#: alpha itself.
+#: alpha and LaViola's DESP ``a`` themselves.
 KNOB_BASELINES: tuple[KnobBaseline, ...] = (
     KnobBaseline("kalman-cv extrapolation", "noise x", (1.0, 1.0), (1e-3, 30.0), _kalman),
     KnobBaseline("alpha-beta extrapolation", "alpha", (TUNED["alpha_beta"]["alpha"],) * 2,
-                 (0.02, 1.0), _alpha_beta),
+                 (0.02, 1.0), _gain(baselines.alpha_beta)),
+    KnobBaseline("desp extrapolation", "a", (TUNED["desp"]["alpha"],) * 2, (0.01, 0.9),
+                 _gain(baselines.double_exponential)),
     KnobBaseline("one-euro + extrapolation", "cutoffs x", (1.0, 1.0), (1e-3, 30.0),
                  _one_euro_x),
     KnobBaseline("imm extrapolation", "densities x", (1.0, 1.0), (1e-3, 30.0), _imm),
@@ -385,7 +391,7 @@ CHOICES_LEGEND = (
     "Every method shows at render time tau the pose it predicts for tau + lookahead and is "
     "scored against the ground truth there. Knobs: Kalman CV process noise, One Euro cutoffs "
     "(min_cutoff and beta) and IMM model densities as multiples of the tuned ones, alpha-beta's "
-    "alpha. 'tuned': the knob tuned for the lowest RMSE on the development set (lookahead 0); "
+    "alpha, DESP's a (LaViola's double exponential smoothing). 'tuned': the knob tuned for the lowest RMSE on the development set (lookahead 0); "
     "'as smooth as phjax': per channel, the knob with the lowest RMSE among those whose RMS "
     "jerk on this recording is at most phjax's (within 1 %; the accuracy / smoothness frontier "
     "at phjax's smoothness); 'never': no knob gets that smooth (shown: the smoothest one). "

@@ -87,7 +87,8 @@ def default_methods(tracker_config: TrackerConfig | None = None) -> list[Method]
     """phjax causal and offline, every tuned causal baseline, and two references.
 
     Causal baselines (parameters from :data:`TUNED`): Kalman CV extrapolation, fixed-gain
-    alpha-beta extrapolation on R^3 x SO(3), One Euro + hold, One Euro + linear extrapolation,
+    alpha-beta extrapolation on R^3 x SO(3), LaViola's double exponential smoothing predictor
+    (DESP), One Euro + hold, One Euro + linear extrapolation,
     snapshot interpolation, IMM extrapolation (the IMM filter without the PH stream). References
     (not ranked as baselines): raw hold (causal) and scipy's cubic spline (offline).
     """
@@ -100,6 +101,8 @@ def default_methods(tracker_config: TrackerConfig | None = None) -> list[Method]
             t, p, q, r, config=kcfg), True),
         Method("alpha-beta extrapolation", lambda t, p, q, r: baselines.alpha_beta(
             t, p, q, r, **TUNED["alpha_beta"]), True),
+        Method("desp extrapolation", lambda t, p, q, r: baselines.double_exponential(
+            t, p, q, r, **TUNED["desp"]), True),
         Method("one-euro + hold", _one_euro_tuned, True),
         Method("one-euro + extrapolation", _one_euro_extrapolation_tuned, True),
         Method("snapshot interpolation", lambda t, p, q, r: baselines.snapshot_interpolation(

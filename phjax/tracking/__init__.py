@@ -8,7 +8,7 @@
   ``track`` (causal, whole recording) and ``reconstruct`` (offline).
 * :mod:`~phjax.tracking.stream`: ``TrackerStream``, the real-time driver of the same stream.
 * :mod:`~phjax.tracking.baselines`: the methods phjax is compared with (One Euro, hold, Kalman
-  extrapolation, splines).
+  and IMM extrapolation, alpha-beta, LaViola's double exponential smoothing, splines).
 * :mod:`~phjax.tracking.tuning`: gradient tuning of the tracker on recordings.
 * :mod:`~phjax.tracking.noise`: measurement noise of a recording, estimated from the recording.
 """
@@ -17,6 +17,7 @@ from .baselines import (
     TUNED,
     alpha_beta,
     cubic_spline,
+    double_exponential,
     hold,
     imm_extrapolation,
     kalman_extrapolation,
@@ -93,6 +94,7 @@ __all__ = [
     "IMMInfo",
     "IMMState",
     "alpha_beta",
+    "double_exponential",
     "imm_estimate",
     "imm_extrapolation",
     "imm_filter",
