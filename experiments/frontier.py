@@ -281,6 +281,19 @@ def med_diff(a, b, key, idx):
     return float(np.median(v)) if v else math.nan
 
 
+def mean_ratio(a, b, key, idx):
+    """As :func:`med_ratio` with the mean (the statistic of the tuning and the jerk rule,
+    :func:`rel_mean`)."""
+    v = [a[i][key] / b[i][key] for i in idx if np.isfinite(a[i][key] / b[i][key])]
+    return float(np.mean(v)) if v else math.nan
+
+
+def mean_diff(a, b, key, idx):
+    """As :func:`med_diff` with the mean."""
+    v = [a[i][key] - b[i][key] for i in idx if np.isfinite(a[i][key] - b[i][key])]
+    return float(np.mean(v)) if v else math.nan
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)

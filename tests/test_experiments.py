@@ -532,6 +532,7 @@ def test_display_frontier_over_sensor_draws_agrees_with_each_draw(tmp_path):
         tr = dfr.target_rows(run["results"][0.02], splits["test"])
         met += dfr._met([tr["phjax_pos"][0], tr["phjax_rot"][0]])
     assert row.rstrip(" |").endswith(f"{met} of 2")
+    assert "read with the mean over recordings of each per-recording ratio" in top
     assert (out / "draw_6" / "display_frontier.png").is_file()
     for f in ("display_frontier.csv", "tuned.json"):
         assert (out / f).read_text() == (out / "draw_5" / f).read_text()
@@ -553,6 +554,30 @@ def test_display_frontier_over_sensor_draws_agrees_with_each_draw(tmp_path):
     text = (old / "display_frontier.md").read_text()
     assert "One Euro d_cutoff tuned" in text and "TUM VI rooms of both splits" in text
     assert "Sensor draw 2: seed 2 for every recording" in text
+
+
+def test_display_frontier_target_rows_median_and_mean():
+    """The target rows take the median over recordings of each per-recording ratio, and the
+    second reading the mean, each against the baseline whose statistic is the largest: on three
+    recordings where the two statistics pick different baselines."""
+    import display_frontier as dfr
+
+    def rows(*pos):
+        return [dict(pos=p, rot=1.0, jp=1.0, jr=1.0, lag_p=0.0, lag_r=0.0) for p in pos]
+
+    kf, ab, de, oe = dfr.EXTERNAL
+    runs = {(dfr.STREAM, 0.028): rows(1.0, 1.0, 1.0), (dfr.IMM, 1): rows(1.0, 1.0, 1.0),
+            (kf, 1): rows(1.0, 1.0, 1.0),           # ratios 1, 1, 1: median 1, mean 1
+            (ab, 1): rows(0.95, 0.95, 2.0),         # 1.053, 1.053, 0.5: median 1.053, mean 0.868
+            (de, 1): rows(1.02, 1.02, 0.5),         # 0.980, 0.980, 2: median 0.980, mean 1.320
+            (oe, 1): rows(2.0, 2.0, 2.0)}
+    tuned = {m: (k, k) for (m, k) in runs}
+    res = dict(runs=runs, tuned=tuned)
+    med = dfr.target_rows(res, [0, 1, 2])
+    assert med["phjax_pos"] == (pytest.approx(1 / 0.95), ab)
+    mean = dfr.target_rows(res, [0, 1, 2], stat="mean")
+    assert mean["phjax_pos"] == (pytest.approx((2 / 1.02 + 2) / 3), de)
+    assert med["jp"] == mean["jp"] == 1.0 and med["lag_p"] == mean["lag_p"] == 0.0
 
 
 def test_display_frontier_alpha_beta_beta_knob():
