@@ -121,18 +121,20 @@ def _rmse(x):
     return float(np.sqrt(np.mean(x * x))) if x.size else math.nan
 
 
-def _lag(errs):
-    """Lag (s) minimising the RMSE curve over LAGS, refined by a parabola through the mean
-    squared errors, as :func:`phjax.evaluation.metrics.shift_lag` refines (on the development
-    streams within 0.001 ms of the RMSE's parabola, used before 2026-11-30). Unlike
-    ``shift_lag``, each shift's RMSE (``errs``, from :func:`score`) is over the samples finite
-    at that shift, not over those finite at every shift; a minimum at an end of LAGS is
-    returned as it is."""
-    if not np.all(np.isfinite(errs)):
+def _lag(err):
+    """Lag (s): the shift of LAGS minimising the RMSE of ``err`` (``(len(LAGS), m)``: each
+    render sample's error against the ground truth shifted by each lag), refined by a parabola
+    through the mean squared errors, as :func:`phjax.evaluation.metrics.shift_lag` does, and
+    like it scoring every shift on the same samples: those finite at every shift (until
+    2026-12-01 each shift on the samples finite at that shift, which differ at ground-truth
+    gaps). A minimum at an end of LAGS is returned as it is; NaN with fewer than 3 samples."""
+    ok = np.all(np.isfinite(err), axis=0)
+    if ok.sum() < 3:
         return math.nan
-    i = int(np.argmin(errs))
+    mse = np.mean(np.asarray(err[:, ok], np.float64) ** 2, axis=1)
+    i = int(np.argmin(mse))
     if 0 < i < len(LAGS) - 1:
-        a, b, c = np.asarray(errs[i - 1:i + 2], np.float64) ** 2
+        a, b, c = mse[i - 1:i + 2]
         den = a - 2 * b + c
         off = 0.5 * (a - c) / den if den > 0 else 0.0
         return float(LAGS[i] + off * (LAGS[1] - LAGS[0]))
@@ -145,10 +147,10 @@ def score(d, p, q):
     if d["has_pos"]:
         row["pos"] = _rmse(np.linalg.norm(p - d["gp"], axis=-1)) * 1e3  # mm
         row["jp"] = rms_jerk_position(d["r"], p).value
-        row["lag_p"] = _lag(np.array([_rmse(np.linalg.norm(p - s, axis=-1)) for s in d["sp"]])) * 1e3
+        row["lag_p"] = _lag(np.linalg.norm(p[None] - d["sp"], axis=-1)) * 1e3
     row["rot"] = _rmse(_angle_deg(q, d["gq"]))
     row["jr"] = rms_jerk_rotation(d["r"], q).value
-    row["lag_r"] = _lag(np.array([_rmse(_angle_deg(q, s)) for s in d["sq"]])) * 1e3
+    row["lag_r"] = _lag(_angle_deg(q[None], d["sq"])) * 1e3
     return row
 
 

@@ -785,6 +785,23 @@ def test_horizon_rule_ignores_a_channel_no_recording_measures():
     assert len(said) == 1 and "taking the longest" in said[0]
 
 
+def test_frontier_lag_scores_every_shift_on_the_same_samples():
+    """The studies' lag (frontier._lag, as phjax.evaluation.shift_lag) scores every candidate
+    shift on the samples finite at every shift. Ten samples whose error is |d - 20 ms| put the
+    lag at 20 ms; an eleventh with a large error where its shifted ground truth exists and none
+    inside a ground-truth gap (the shifts from 50 ms on) is left out, where scoring each shift
+    on its own finite samples (the rule before 2026-12-01) moved the lag into the gap."""
+    import frontier
+
+    lags = frontier.LAGS
+    err = np.abs(lags[:, None] - 0.02) * np.ones((1, 11))
+    err[:, 10] = np.where(lags < 0.05, 1.0, np.nan)
+    assert frontier._lag(err) == pytest.approx(0.02, abs=1e-9)
+    own = np.array([np.sqrt(np.nanmean(e ** 2)) for e in err])  # each shift's finite samples
+    assert lags[np.argmin(own)] >= 0.05
+    assert np.isnan(frontier._lag(np.full((len(lags), 2), 0.1)))  # under 3 samples
+
+
 def test_display_frontier_stream_options_reach_the_swept_stream(tmp_path, monkeypatch, capsys):
     """``--stream-option FIELD=VALUE`` (JSON values) are TrackerConfig fields of the swept
     stream; an unknown field or a value that is not JSON is one line and exit 2, before any
