@@ -462,8 +462,7 @@ def report(data, results: dict, names, train, splits, seconds, wall,
     lines += ["## Target: phjax / strongest external baseline", "",
               "Median of per-recording RMSE ratios against the external baseline (Kalman CV, "
               "alpha-beta, LaViola's DESP, One Euro + extrapolation) with the largest ratio, "
-              "named; beside it "
-              "the same for the IMM extrapolation (phjax's own filter, no stream). Jerk: phjax / "
+              "named; beside it the same for the IMM extrapolation (phjax's own filter, no stream). Jerk: phjax / "
               "tuned Kalman CV; lag: phjax - Kalman CV, ms. Target at 20 and 50 ms: RMSE <= "
               "1.00 at jerk <= 1/3.", "",
               *header]
@@ -476,6 +475,13 @@ def report(data, results: dict, names, train, splits, seconds, wall,
 
     def num(x, spec):
         return format(x, spec) if np.isfinite(x) else "-"
+
+    def target_line(L, split, tr, horizons):  # one row of the target tables
+        return (f"| {1e3 * L:g} ms | {split} | {rc(tr['phjax_pos'])} | {rc(tr['phjax_rot'])} | "
+                f"{rc(tr['imm_pos'])} | {rc(tr['imm_rot'])} | {num(tr['jp'], '.3f')} | "
+                f"{num(tr['jr'], '.3f')} | {num(tr['lag_p'], '+.1f')} | "
+                f"{num(tr['lag_r'], '+.1f')} | "
+                + " / ".join(f"{h:g}" for h in dict.fromkeys(horizons)) + " s |")
 
     for stream in (STREAM, DEFAULT, PER_CHANNEL):
         if stream == DEFAULT:
@@ -496,13 +502,7 @@ def report(data, results: dict, names, train, splits, seconds, wall,
                     continue
                 tr = target_rows(res, idx, stream)
                 summary[(stream, L, split)] = tr
-                lines.append(f"| {1e3 * L:g} ms | {split} | {rc(tr['phjax_pos'])} | "
-                             f"{rc(tr['phjax_rot'])} | {rc(tr['imm_pos'])} | "
-                             f"{rc(tr['imm_rot'])} | {num(tr['jp'], '.3f')} | "
-                             f"{num(tr['jr'], '.3f')} | {num(tr['lag_p'], '+.1f')} | "
-                             f"{num(tr['lag_r'], '+.1f')} | "
-                             + " / ".join(f"{h:g}" for h in dict.fromkeys(res["tuned"][stream]))
-                             + " s |")
+                lines.append(target_line(L, split, tr, res["tuned"][stream]))
     lines += ["", "### The stream's frontier where its jerk is 1/3 of the Kalman CV's", "",
               "The rule above keeps the *train* jerk within 1/3; on another split the jerk "
               "ratio at that horizon differs. This reads the stream's horizon sweep on each "
@@ -531,13 +531,7 @@ def report(data, results: dict, names, train, splits, seconds, wall,
             if idx:
                 tr = target_rows(res, idx, STREAM, stat="mean")
                 summary[(MEAN, L, split)] = tr
-                lines.append(f"| {1e3 * L:g} ms | {split} | {rc(tr['phjax_pos'])} | "
-                             f"{rc(tr['phjax_rot'])} | {rc(tr['imm_pos'])} | "
-                             f"{rc(tr['imm_rot'])} | {num(tr['jp'], '.3f')} | "
-                             f"{num(tr['jr'], '.3f')} | {num(tr['lag_p'], '+.1f')} | "
-                             f"{num(tr['lag_r'], '+.1f')} | "
-                             + " / ".join(f"{h:g}" for h in dict.fromkeys(res["tuned"][STREAM]))
-                             + " s |")
+                lines.append(target_line(L, split, tr, res["tuned"][STREAM]))
     lines.append("")
     for L, res in results.items():
         lines += [f"## Lookahead {1e3 * L:g} ms", ""]

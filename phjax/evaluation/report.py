@@ -88,8 +88,8 @@ def default_methods(tracker_config: TrackerConfig | None = None) -> list[Method]
 
     Causal baselines (parameters from :data:`TUNED`): Kalman CV extrapolation, fixed-gain
     alpha-beta extrapolation on R^3 x SO(3), LaViola's double exponential smoothing predictor
-    (DESP), One Euro + hold, One Euro + linear extrapolation,
-    snapshot interpolation, IMM extrapolation (the IMM filter without the PH stream). References
+    (DESP), One Euro + hold, One Euro + linear extrapolation, snapshot interpolation, IMM
+    extrapolation (the IMM filter without the PH stream). References
     (not ranked as baselines): raw hold (causal) and scipy's cubic spline (offline).
     """
     cfg = tracker_config if tracker_config is not None else TrackerConfig()
