@@ -54,6 +54,7 @@ import csv
 import dataclasses
 import json
 import math
+import operator
 import sys
 import time
 from pathlib import Path
@@ -273,27 +274,30 @@ def med(rows, key, idx):
     return float(np.median(v)) if v else math.nan
 
 
+def _paired(a, b, key, idx, op, stat):
+    """``stat`` (``np.median`` / ``np.mean``) over ``idx`` of the finite per-recording
+    ``op(a[i][key], b[i][key])`` (NaN when none is finite)."""
+    v = [x for x in (op(a[i][key], b[i][key]) for i in idx) if np.isfinite(x)]
+    return float(stat(v)) if v else math.nan
+
+
 def med_ratio(a, b, key, idx):
-    v = [a[i][key] / b[i][key] for i in idx if np.isfinite(a[i][key] / b[i][key])]
-    return float(np.median(v)) if v else math.nan
+    return _paired(a, b, key, idx, operator.truediv, np.median)
 
 
 def med_diff(a, b, key, idx):
-    v = [a[i][key] - b[i][key] for i in idx if np.isfinite(a[i][key] - b[i][key])]
-    return float(np.median(v)) if v else math.nan
+    return _paired(a, b, key, idx, operator.sub, np.median)
 
 
 def mean_ratio(a, b, key, idx):
     """As :func:`med_ratio` with the mean (the statistic of the tuning and the jerk rule,
     :func:`rel_mean`)."""
-    v = [a[i][key] / b[i][key] for i in idx if np.isfinite(a[i][key] / b[i][key])]
-    return float(np.mean(v)) if v else math.nan
+    return _paired(a, b, key, idx, operator.truediv, np.mean)
 
 
 def mean_diff(a, b, key, idx):
     """As :func:`med_diff` with the mean."""
-    v = [a[i][key] - b[i][key] for i in idx if np.isfinite(a[i][key] - b[i][key])]
-    return float(np.mean(v)) if v else math.nan
+    return _paired(a, b, key, idx, operator.sub, np.mean)
 
 
 def main(argv=None):

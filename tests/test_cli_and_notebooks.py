@@ -57,8 +57,9 @@ def test_demo_prints_table_and_writes_plot(tmp_path, capsys):
     # every method at its tuned setting (lookahead 0), best causal values in bold; the old row
     # of 'the strongest baseline of each column' (a different method per column) is gone
     for name in ["phjax (causal)", "phjax (offline)", "kalman-cv extrapolation",
-                 "alpha-beta extrapolation", "desp extrapolation", "one-euro + hold", "one-euro + extrapolation",
-                 "snapshot interpolation", "imm extrapolation", "raw hold", "cubic spline (scipy)"]:
+                 "alpha-beta extrapolation", "desp extrapolation", "one-euro + hold",
+                 "one-euro + extrapolation", "snapshot interpolation", "imm extrapolation",
+                 "raw hold", "cubic spline (scipy)"]:
         assert f"| {name} | yes |" in out or f"| {name} | no (offline) |" in out
     assert LEGEND in out  # the line saying what the numbers mean
     assert "strongest baseline" not in out

@@ -350,13 +350,17 @@ def test_alpha_beta_lookahead_equals_numpy_loop(lookahead):
     _check_lookahead(out, *ref)
 
 
-def _np_desp(t, z, a, render, lookahead, s0=None):
+def _np_desp(t, z, a, render, lookahead, alpha_beta_start=True):
     """LaViola's DESP (2003) as printed, on a regular frame clock (period ``t[1] - t[0]``):
     ``S1 = a z + (1 - a) S1``, ``S2 = a S1 + (1 - a) S2`` per frame, the render time ``tau``
     shows ``(2 + a f / (1 - a)) S1 - (1 + a f / (1 - a)) S2`` with ``f`` the frames from the
-    latest frame to ``tau + lookahead``. ``s0 = (S1, S2)`` after frame 1 (else LaViola's
-    ``S1 = S2 = z0``; frame 0 then shows ``z0``)."""
+    latest frame to ``tau + lookahead``. Frame 0 sets ``S1 = S2 = z0``; with
+    ``alpha_beta_start`` frame 1 sets the state that the alpha-beta start (velocity from the
+    first two frames) stands for, ``S1 = z1 - b (1 - a) / a``, ``S2 = S1 - b (1 - a) / a`` with
+    ``b = z1 - z0`` per frame, else LaViola's recursion runs from frame 1 on."""
     period = t[1] - t[0]
+    b = z[1] - z[0]
+    s0 = (z[1] - b * (1 - a) / a, z[1] - 2 * b * (1 - a) / a) if alpha_beta_start else None
     s1 = s2 = z[0]
     states = [(s1, s2)]
     for i in range(1, len(t)):
@@ -378,10 +382,9 @@ def _np_desp(t, z, a, render, lookahead, s0=None):
 @pytest.mark.parametrize("a,lookahead", [(0.15, 0.0), (0.4, 0.02), (0.7, 0.05)])
 def test_double_exponential_is_laviolas_desp(a, lookahead):
     """Positions against a loop of LaViola's DESP formulas (30 Hz frames, render times between
-    and on frames), started from the state that the alpha-beta start (velocity from the
-    first two frames) stands for: ``S1 = z1 - b (1 - a) / a``, ``S2 = S1 - b (1 - a) / a`` with
-    ``b = z1 - z0`` per frame. From LaViola's own start (``S1 = S2 = z0``) the difference
-    decays as ``(1 - a)^k``."""
+    and on frames), started from the state that the alpha-beta start stands for
+    (:func:`_np_desp`). From LaViola's own start (``S1 = S2 = z0``) the difference decays as
+    ``(1 - a)^k``."""
     rng = np.random.default_rng(5)
     n = 60
     t = 0.3 + np.arange(n) / 30.0
@@ -390,17 +393,15 @@ def test_double_exponential_is_laviolas_desp(a, lookahead):
     q = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
     render = np.sort(np.concatenate([t[::3], rng.uniform(t[0] - 0.05, t[-1] + 0.05, M - 20)]))
     out = np.asarray(double_exponential(t, p, q, render, alpha=a, lookahead=lookahead)[0])
-    b = p[1] - p[0]
-    s1 = p[1] - b * (1 - a) / a
-    ref = _np_desp(t, p, a, render, lookahead, s0=(s1, s1 - b * (1 - a) / a))
+    ref = _np_desp(t, p, a, render, lookahead)
     np.testing.assert_array_equal(np.isnan(out), np.isnan(ref))
     np.testing.assert_allclose(out, ref, rtol=0, atol=1e-12)
     # LaViola's start: the difference shrinks as (1 - a)^k (x 50 margin on its first value)
-    own = _np_desp(t, p, a, render, lookahead)
+    own = _np_desp(t, p, a, render, lookahead, alpha_beta_start=False)
     k = np.clip(np.searchsorted(t, render, side="right") - 1, 0, None)
     late = render >= t[1]
     diff = np.linalg.norm(out - own, axis=1)[late]
-    bound = 50 * np.linalg.norm(b) * (2 + a * 2 / (1 - a)) * (1 - a) ** k[late]
+    bound = 50 * np.linalg.norm(p[1] - p[0]) * (2 + a * 2 / (1 - a)) * (1 - a) ** k[late]
     assert np.all(diff <= bound + 1e-12)
 
 
@@ -419,9 +420,7 @@ def test_double_exponential_orientation_is_laviolas_to_first_order():
     render = t[2:] + 0.5 / 120
     out = np.asarray(double_exponential(t, p, q, render, alpha=a)[1])
     # the alpha-beta start in quaternion components: level q1, trend q1 - q0 per frame
-    b = q[1] - q[0]
-    s1 = q[1] - b * (1 - a) / a
-    ref = _np_desp(t, q, a, render, 0.0, s0=(s1, s1 - b * (1 - a) / a))
+    ref = _np_desp(t, q, a, render, 0.0)
     ref /= np.linalg.norm(ref, axis=1, keepdims=True)
     err = np.degrees(_angle(out, ref))
     assert err.max() < 5e-3, err.max()
