@@ -633,6 +633,37 @@ def test_display_frontier_horizon_per_channel_follows_each_channels_jerk_rule():
     assert res["tuned"][dfr.PER_CHANNEL] == (0.03, 0.03)
 
 
+def test_stream_filter_choice_takes_each_channels_best_pair_within_the_jerk_rule():
+    """The joint choice of IMM grid point and horizon: per channel, the pair with the lowest
+    train RMSE (relative to the hold) among those whose train jerk is within 1/3 of the tuned
+    Kalman CV's on that channel; only train recordings count; with no pair within the rule, the
+    longest horizon."""
+    import display_frontier as dfr
+    import stream_filter_choice as sfc
+
+    def rows(pos, rot, jp, jr, test_pos=None):
+        out = [dict(pos=pos, rot=rot, jp=jp, jr=jr) for _ in range(3)]
+        if test_pos is not None:  # recording 2 is not on train: it must not count
+            out[2]["pos"] = test_pos
+        return out
+
+    kf = "kalman-cv extrapolation"
+    res = dict(hold=rows(1.0, 1.0, 1.0, 1.0), runs={(kf, 1.0): rows(1.0, 1.0, 3.0, 3.0)},
+               tuned={kf: (1.0, 1.0)})
+    a, b = (1.0, 15.0, 1.0), (0.3, 40.0, 1.0)
+    sweep = {(a, 0.02): rows(0.50, 0.50, 1.5, 1.2),   # jerk over 1/3 x 3 in both
+             (a, 0.03): rows(0.60, 0.70, 0.9, 0.6),
+             (b, 0.03): rows(0.65, 0.55, 0.6, 0.8, test_pos=0.01),
+             (b, 0.04): rows(0.70, 0.60, 0.5, 0.3)}
+    assert sfc.choose(sweep, res, [0, 1], "p") == (a, 0.03)
+    assert sfc.choose(sweep, res, [0, 1], "r") == (b, 0.03)
+    assert dfr.rows_of(res, kf, "r") is res["runs"][(kf, 1.0)]
+    for r in sweep.values():  # nothing within the rule: the smoothest horizon
+        for x in r:
+            x["jp"] = 5.0
+    assert sfc.choose(sweep, res, [0, 1], "p") == (b, 0.04)
+
+
 def test_display_frontier_refuses_unusable_recordings_in_one_line(tmp_path, capsys):
     """A missing file or a file of several trajectories ended in a traceback; FILE#NAME
     names one (as on phjax's command line); a split whose train half has no positions (the
