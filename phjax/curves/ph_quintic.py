@@ -242,7 +242,7 @@ def _data(p0, p1, d0, d1) -> _Data:
     n0, n1 = _c.norm(d0), _c.norm(d1)
     scale = _c.norm(dp) + n0 + n1
     d0hat, d1hat = _c.normalize(d0), _c.normalize(d1)
-    axis = _c.where(n0 > 0, d0hat, _c.where(n1 > 0, d1hat, _c.normalize(dp, fallback=_EX)))
+    axis = _c.where(n0 > 0, d0hat, _c.where(n1 > 0, d1hat, _c.normalize(dp, fallback=_EX, floor=1e-18)))
     *vecs, (n0,), (n1,), (scale,) = _c.checkpoint(dp, w, g0, d0hat, d1hat, axis, (n0,), (n1,),
                                                   (scale,))
     return _Data(d1, *vecs, n0, n1, scale, root)
@@ -591,7 +591,7 @@ class PHQuintic(eqx.Module):
         ok = self._moving(sigma, k) & curved
         okv = ok[..., None]
         helix = (jnp.array([1.0, 0.0, 1.0]), jnp.array([0.0, 1.0, 0.0]), jnp.array([-1.0, 0.0, 0.0]))
-        regular = tau(jnp.where(ok, sigma, 1), jnp.where(okv, b, jnp.array([0.0, 1.0, 0.0])),
+        regular = tau(jnp.where(ok, sigma, 1), jnp.where(okv, b, jnp.array([0.0, 1.0, 0.0], b.dtype)),
                       [jnp.where(okv, d, h.astype(d.dtype)) for d, h in zip(derivs, helix)])
         at_cusp = jnp.where(curved, lax.stop_gradient(tau(sigma, b, derivs)), 0)
         return jnp.where(ok, regular, at_cusp)
