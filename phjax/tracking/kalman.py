@@ -829,14 +829,16 @@ def rts_smooth(config: KalmanConfig, filtered_states: KalmanState) -> KalmanStat
             cur.part_updates,
         )
         # after the last accepted measurement there is nothing to smooth with: the filtered
-        # state is the smoothed one (exactly), and the recursion through a long tail of lost
+        # state is the smoothed one (exactly), so a state is smoothed only against a next one
+        # at or before that measurement's time (smoothing the last measured state against its
+        # own prediction over a 10 s gap gave float32 NaN), and the recursion through a long tail of lost
         # frames (the size-class padding: 1 s apart) is left out: in float32 its covariances
         # lost positive-definiteness and the Cholesky's NaN reached every real frame
         # Likewise across a pause longer than SMOOTH_MAX_GAP: the prediction over it (a
         # rotation w dt of many turns, a position v dt of km) linearises nothing, and smoothing
         # with it put the poses before a 5 min pause up to 180 degrees off; the two sides are
         # smoothed apart
-        informed = (final_update >= cur.t) & (dt <= SMOOTH_MAX_GAP)
+        informed = (nxt.t <= final_update) & (dt <= SMOOTH_MAX_GAP)
         out = _select(cur.initialized & nxt.initialized & informed, smoothed, cur)
         return out, out
 

@@ -511,6 +511,23 @@ def test_offline_reconstruction_bridges_a_long_gap_without_made_up_motion(head, 
     assert turn.max() <= span + 0.15 * 2 * max(np.linalg.norm(wa), 1.0) + 1e-6
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_reconstruct_of_sparse_frames_with_large_turns_is_finite(dtype):
+    """Found by probing: frames 10 s apart, each at a random orientation (float32) gave NaN
+    quaternions over the last segment: the smoother smoothed the last measured state against
+    its own uninformative prediction (a 10 s step of an uncertain spin). At and after the last
+    measurement the filtered state is now taken as it is, as RTS defines it."""
+    rng = np.random.default_rng(1)
+    n = 16
+    q = rng.standard_normal((n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    t = np.arange(n) * 10.0
+    P, Q = (np.asarray(x) for x in pj.reconstruct(t, rng.standard_normal((n, 3)), q,
+                                                  np.linspace(0, 150, 50), dtype=dtype))
+    assert np.isfinite(P).all() and np.isfinite(Q).all()
+    np.testing.assert_allclose(np.linalg.norm(Q, axis=-1), 1, atol=1e-5)
+
+
 @pytest.mark.parametrize("gap", [None, 3600.0, 86400.0])
 def test_reconstruct_in_float32_across_padding_and_pauses(head, gap):
     """Found by probing (float32, the default): the size-class padding (lost frames 1 s apart
