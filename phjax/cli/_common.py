@@ -205,7 +205,9 @@ def read_input(path, format: str = "auto", *, min_poses: int = 2, measurements: 
             not checked).
 
     Returns:
-        The :class:`~phjax.io.Trajectory`.
+        The :class:`~phjax.io.Trajectory`. A file with one part alone (no valid position, or
+        no valid orientation, in any row) is read, with a
+        :class:`~phjax.io.TrajectoryWarning` naming the part the results will lack.
 
     Raises:
         FileNotFoundError, IsADirectoryError: no such file / a folder.
@@ -242,6 +244,15 @@ def read_input(path, format: str = "auto", *, min_poses: int = 2, measurements: 
             f"({int(p_ok.sum())} position-only, {int(q_ok.sum())} orientation-only rows); the "
             "filters start from a whole pose: merge the parts into one row per time, or give "
             "one part alone", path=path)
+    for part, ok, other in (("position", p_ok, "orientation"), ("orientation", q_ok, "position")):
+        if not ok.any():  # one part alone is allowed, but not silently
+            import warnings
+
+            from ..io import TrajectoryWarning
+
+            warnings.warn(f"{os.fspath(path)}: no row holds a valid {part} ({other} only); the "
+                          f"results have no {part} (NaN in written files, '-' in tables)",
+                          TrajectoryWarning, stacklevel=2)
     return traj
 
 
@@ -251,7 +262,9 @@ def check_output(path, what: str = "output", inputs=()) -> Path:
     command line, ``FILE#NAME`` included), which writing it would destroy."""
     p = Path(path)
     if p.is_dir():
-        raise IsADirectoryError(21, f"Is a directory (expected an {what} file name)", str(path))
+        article = "an" if what[:1] in "aeiou" else "a"
+        raise IsADirectoryError(21, f"Is a directory (expected {article} {what} file name)",
+                                str(path))
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise FileNotFoundError(2, f"No such folder for the {what} file", str(parent))
@@ -288,6 +301,8 @@ def check_plot_output(path) -> Path:
     matplotlib would write it, so that the messages name the real file); an extension
     matplotlib cannot write is an error before any work."""
     p = Path(path)
+    if p.is_dir():  # a folder, not the name of a file to put in it
+        return check_output(p, "plot")
     if not p.suffix:
         p = p.with_name(p.name + ".png")
     elif p.suffix.lower() not in PLOT_SUFFIXES:

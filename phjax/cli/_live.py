@@ -9,6 +9,7 @@ import math
 import signal
 import sys
 import threading
+from pathlib import Path
 
 from .._face_sizes import HEAD_SIZE_RANGE, IPD_RANGE
 from .._live_defaults import LIVE_NOISE_WINDOW
@@ -124,6 +125,9 @@ def cmd_live(args) -> int:
                       flush=True)
 
     try:
+        if args.log and Path(args.log).suffix.lower() not in ("", ".tum", ".txt"):
+            raise ValueError(f"--log {args.log}: the log is a TUM file (t x y z qx qy qz qw, "
+                             "space-separated); name it .tum or .txt")
         if args.log and overwritten_input(args.log, [args.source]) is not None:
             raise ValueError(f"--log {args.log}: is the replayed pose file; writing the log "
                              "would destroy it: name another file")
@@ -263,13 +267,16 @@ def add_commands(sub) -> None:
                    help="opentrack://HOST[:PORT] (default port 4242; 48-byte datagrams of six "
                    "float64: x y z cm, yaw pitch roll deg) or osc://HOST[:PORT] (default 9000; "
                    "/phjax/pose t x y z qw qx qy qz); repeatable")
-    p.add_argument("--rate", type=float, default=120.0, help="render rate, Hz (default 120)")
+    p.add_argument("--rate", type=float, default=120.0,
+                   help="render rate, Hz (default 120; at most 1000: each pose is predicted and "
+                   "sent on its own deadline)")
     p.add_argument("--duration", type=positive_float, default=None,
                    help="stop after this many seconds (a positive finite number; default: end "
-                   "of the source / Ctrl-C)")
+                   "of the source / Ctrl-C). Longer than the source: after its end the stream "
+                   "coasts to rest and the held pose is sent until then")
     p.add_argument("--log", type=file_name, default=None, metavar="FILE.tum",
-                   help="write every sent pose to this TUM file (an existing one is replaced, "
-                   "and the start line says so)")
+                   help="write every sent pose to this TUM file (.tum or .txt; an existing "
+                   "one is replaced, and the start line says so)")
     p.add_argument("--lookahead", type=float, default=0.0, metavar="MS",
                    help="display-time prediction, ms (default 0, at most 200): send the pose "
                    "predicted for MS after the render time. Set it to the display's "

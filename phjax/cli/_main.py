@@ -228,17 +228,44 @@ def main(argv: list[str] | None = None) -> int:
     file, folder, permissions) raised by a command prints ONE line
     ``phjax <command>: error: ...`` on stderr and returns 2; no traceback.
     """
-    try:  # importing the commands (JAX among them) takes about a second: Ctrl-C is one line
-        parser = build_parser()
+    usr1 = _hold_usr1()
+    try:  # starting (importing JAX, opening the cache) takes about a second: Ctrl-C is one line
+        return _run(argv, usr1)
     except KeyboardInterrupt:
         print("\nphjax: interrupted", file=sys.stderr)
         return 130
+    finally:
+        if usr1 is not None:
+            import signal
+
+            signal.signal(signal.SIGUSR1, usr1)
+
+
+def _hold_usr1():
+    """Ignore SIGUSR1 while the command starts; returns the previous handler (or None).
+
+    ``phjax live`` re-centres on SIGUSR1 once its own handler is installed; before that the
+    signal's default action killed the process (status 138) when a script sent it early."""
+    import signal
+    import threading
+
+    if not hasattr(signal, "SIGUSR1") or threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGUSR1, signal.SIG_IGN)
+
+
+def _run(argv: list[str] | None, usr1) -> int:
+    parser = build_parser()
     try:
         args, extra = parser.parse_known_args(argv)
         if extra:  # named by the command they were given to, as its other usage errors
             parser.commands.get(getattr(args, "command", None), parser).error(f"unrecognized arguments: {' '.join(extra)}")
     except SystemExit as stop:  # --help (0) or a usage error (2, its line already printed)
         return stop.code if isinstance(stop.code, int) else 2
+    if usr1 is not None and args.command != "live":  # only live handles it (once started)
+        import signal
+
+        signal.signal(signal.SIGUSR1, usr1)  # (put back again, harmlessly, by main)
     from ..io import TrajectoryWarning
     from ._cache import cache_disabled, compilation_cache
 

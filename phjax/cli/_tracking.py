@@ -29,6 +29,9 @@ from ._common import (
 )
 from ._tune import add_config_argument, add_noise_argument
 
+#: ``phjax demo``'s length of synthetic head motion, s
+DEMO_DURATION = 60.0
+
 
 def _x64():
     import jax
@@ -152,6 +155,11 @@ def _demo_rgbd(args) -> int:
 
 def cmd_demo(args) -> int:
     _x64()
+    if args.duration is not None and (args.input or args.rgbd):  # it was ignored without a word
+        raise ValueError("--duration sets the length of the synthetic motion; "
+                         + ("--rgbd N sets the number of frames" if args.rgbd else
+                            "with an input file the whole file is used")
+                         + " (leave out --duration)")
     if args.rgbd:
         return _demo_rgbd(args)
     if args.input:
@@ -160,8 +168,15 @@ def cmd_demo(args) -> int:
                                f"phjax demo on {args.input}", args.input)
     from ..motion.simulate import synthetic_head_motion
 
-    t, p, q = synthetic_head_motion(duration=args.duration, seed=args.seed)
-    return _run_evaluation(t, p, q, args, f"phjax demo: synthetic head motion ({args.duration:g} s)")
+    duration = DEMO_DURATION if args.duration is None else args.duration
+    # before the motion is made (at 240 Hz: --duration 1e9 ran out of memory making it)
+    check_fits({f"--duration {duration:g} s at --rate {args.rate:g} Hz":
+                (duration * args.rate, BYTES_PER_RENDER_SAMPLE["evaluate"]),
+                f"--duration {duration:g} s of synthetic motion (240 Hz)":
+                (duration * 240, BYTES_PER_RENDER_SAMPLE["evaluate"])},
+               "shorten --duration or lower --rate")
+    t, p, q = synthetic_head_motion(duration=duration, seed=args.seed)
+    return _run_evaluation(t, p, q, args, f"phjax demo: synthetic head motion ({duration:g} s)")
 
 
 def cmd_evaluate(args) -> int:
@@ -283,8 +298,9 @@ def add_commands(sub) -> None:
         "phjax_evaluation.tum instead.")
     p.add_argument("input", nargs="?", help="optional ground-truth trajectory file (TUM, EuRoC, CSV, ...)")
     add_format_argument(p, "format of INPUT")
-    p.add_argument("--duration", type=positive_float, default=60.0,
-                   help="length of the synthetic motion, s")
+    p.add_argument("--duration", type=positive_float, default=None,
+                   help=f"length of the synthetic motion, s (default {DEMO_DURATION:g}; not with "
+                   "INPUT)")
     p.add_argument("--rgbd", type=nonnegative_int, default=0, metavar="N",
                    help="instead: the end-to-end path on N frames of the package's synthetic RGB-D "
                    "head (YuNet + features + depth + ICP head pose, then the tracker); the YuNet "

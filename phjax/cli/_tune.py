@@ -91,6 +91,17 @@ def _noise_value(text: str):
             f"expected 'config', 'auto', 'floor' or 'MM,DEG', got {text!r}") from None
     if not (np.isfinite(mm) and np.isfinite(deg) and mm > 0 and deg > 0):
         raise argparse.ArgumentTypeError(f"stds must be positive and finite, got {text!r}")
+    from ..tracking._config_ranges import CONFIG_RANGES
+
+    # the configuration's range (SI: m, rad), beyond which the tracker fails; in the option's units
+    low, high = CONFIG_RANGES["kalman.pos_meas_noise"]
+    rlow, rhigh = CONFIG_RANGES["kalman.rot_meas_noise"]
+    for name, x, lo, hi, unit in (("position", mm, low * 1e3, high * 1e3, "mm"),
+                                  ("orientation", deg, np.degrees(rlow), np.degrees(rhigh), "deg")):
+        if not lo <= x <= hi:
+            raise argparse.ArgumentTypeError(
+                f"{name} std {x:g} {unit} is out of range [{lo:.3g}, {hi:.3g}] {unit} (beyond it "
+                f"the tracker fails or outputs NaN poses), got {text!r}")
     return mm, deg
 
 
@@ -307,9 +318,9 @@ def add_commands(sub) -> None:
                    "pos_process_noise, rot_process_noise, pos_meas_noise, rot_meas_noise, "
                    "horizon). Names of every tunable parameter: "
                    "phjax.tracking.tuning.tunable_parameters()")
-    p.add_argument("--position-weight", type=float, default=1.0,
+    p.add_argument("--position-weight", type=nonnegative_float, default=1.0,
                    help="weight of the position terms (default 1)")
-    p.add_argument("--rotation-weight", type=float, default=1.0,
+    p.add_argument("--rotation-weight", type=nonnegative_float, default=1.0,
                    help="weight of the rotation terms (default 1)")
     add_config_argument(p)
     m = p.add_argument_group("real measurements (instead of the simulated sensor)")

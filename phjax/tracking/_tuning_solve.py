@@ -129,7 +129,8 @@ def make_problem(
     paths = _resolve(config, parameters)
     _check_positive(config, paths)
     if not (float(lam) >= 0 and float(position_weight) >= 0 and float(rotation_weight) >= 0):
-        raise ValueError("lam and the weights must be non-negative")
+        raise ValueError("lam, position_weight and rotation_weight must be non-negative, got "
+                         f"{lam}, {position_weight}, {rotation_weight}")
     _check_something_scored(data, float(position_weight), float(rotation_weight))
     dtype = data.times.dtype
     return TuningProblem(data, _arrays_config(config, dtype), parameters, paths,

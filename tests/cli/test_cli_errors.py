@@ -125,6 +125,26 @@ BAD_ARGUMENTS = [
     (["track-rgbd", "synthetic:1000000000", "-o", "OUT.tum"], "give fewer frames (N, or"),
     (["track-rgbd", "synthetic:2", "-o", "OUT.tum", "--model-dir", "NOFOLDER"],
      "not found in NOFOLDER: pass --model-dir FOLDER (a folder holding the model files"),
+    # named the library's field in SI / the library's keyword, or ran out of memory, or was
+    # ignored without a word, or wrote a TUM file under a .csv name
+    (["smooth", "FILE", "-o", "OUT.txt", "--measurement-noise", "1e9,1e9"],
+     "argument --measurement-noise: orientation std 1e+09 deg is out of range [5.73e-11, "
+     "5.73e+07] deg"),
+    (["smooth", "FILE", "-o", "OUT.txt", "--measurement-noise", "1e-12,1"],
+     "argument --measurement-noise: position std 1e-12 mm is out of range [1e-09, 1e+09] mm"),
+    (["tune", "FILE", "--lambda", "1", "-o", "OUT.json", "--position-weight", "-1"],
+     "argument --position-weight: must be a finite number >= 0, got '-1'"),
+    (["tune", "FILE", "--lambda", "1", "-o", "OUT.json", "--rotation-weight", "nan"],
+     "argument --rotation-weight: must be a finite number >= 0"),
+    (["demo", "--duration", "1e9", "--no-progress"],
+     "--duration 1e+09 s of synthetic motion (240 Hz) makes 2.4e+11 samples"),
+    (["demo", "FILE", "--duration", "5"], "--duration sets the length of the synthetic motion; "
+     "with an input file the whole file is used (leave out --duration)"),
+    (["demo", "--rgbd", "2", "--duration", "5"], "--rgbd N sets the number of frames"),
+    (["evaluate", "FILE", "--plot", ".", "--no-progress"],
+     "Is a directory (expected a plot file name)"),
+    (["live", "poses:FILE", "--log", "OUT.csv"], "the log is a TUM file (t x y z qx qy qz qw, "
+     "space-separated); name it .tum or .txt"),
     (["smooth", "FILE"], "the following arguments are required: -o/--output"),
     (["smooth", "FILE", "-o", "OUT.txt", "--measurement-noise", "3,x"],
      "argument --measurement-noise: expected 'config', 'auto', 'floor' or 'MM,DEG'"),
@@ -271,6 +291,27 @@ def test_one_part_rows_before_the_first_whole_pose_are_named(tmp_path, capsys):
     assert rc == 0, err
     assert "45 one-part measurement(s) before the first whole pose" in err
     assert "1.5 s after the first measurement" in err
+
+
+@pytest.mark.parametrize("missing", ["position", "orientation"])
+def test_a_file_with_one_part_alone_is_read_with_one_warning(tmp_path, capsys, missing):
+    """An orientation-only recording (a VR head trace) or a position-only one is valid input,
+    but the missing part came out as NaN rows / '-' cells without a word (exit 0); now one
+    warning line names it. The written file keeps the measured part finite."""
+    t = np.arange(40) / 30
+    p, q = np.c_[0.01 * np.sin(t), 0 * t, 0 * t], np.c_[0 * t, 0 * t, 0.1 * np.sin(t), 1 + 0 * t]
+    (p if missing == "position" else q)[:] = np.nan
+    f, out = tmp_path / "part.txt", tmp_path / "out.txt"
+    np.savetxt(f, np.c_[t, p, q])
+    rc, stdout, err = run_cli(capsys, ["smooth", str(f), "-o", str(out)])
+    assert rc == 0, err
+    other = "orientation" if missing == "position" else "position"
+    assert err.count("phjax: warning:") == 1, err
+    assert (f"phjax: warning: {f}: no row holds a valid {missing} ({other} only); the results "
+            f"have no {missing} (NaN in written files, '-' in tables)") in err
+    rows = np.loadtxt(out)
+    kept, lost = (rows[:, 4:], rows[:, 1:4]) if missing == "position" else (rows[:, 1:4], rows[:, 4:])
+    assert len(rows) > 100 and np.isfinite(kept).all() and np.isnan(lost).all()
 
 
 def test_demo_curve_reads_the_named_file_without_synthetic_fallback(tmp_path, capsys):

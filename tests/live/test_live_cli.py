@@ -342,6 +342,45 @@ def test_a_stop_signal_during_the_start_ends_in_one_line(tmp_path, capsys, monke
     assert {s: signal.getsignal(s) for s in before} == before
 
 
+def _usr1_ignored(pid: int) -> bool:
+    """Whether the process ignores SIGUSR1 (its SigIgn mask in /proc)."""
+    with open(f"/proc/{pid}/status") as f:
+        mask = next(int(line.split()[1], 16) for line in f if line.startswith("SigIgn:"))
+    return bool(mask >> (signal.SIGUSR1 - 1) & 1)
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="needs Linux's /proc")
+@pytest.mark.parametrize("sig", ["SIGUSR1", "SIGINT"])
+def test_a_signal_while_the_command_imports_is_one_line_or_nothing(tmp_path, sig):
+    """In the first second (imports, before ``live`` installs its handlers) SIGUSR1 killed the
+    process (status 138) and Ctrl-C printed a traceback. Sent as soon as ``main`` runs (it then
+    ignores SIGUSR1 until live's own handler takes over): SIGUSR1 changes nothing (a re-centre
+    before the start), SIGINT ends the run in one line."""
+    src = tmp_path / "p.txt"
+    write_tum(src, Trajectory(np.arange(30) / 30, np.zeros((30, 3)),
+                              np.tile([1.0, 0, 0, 0], (30, 1))))
+    proc = subprocess.Popen([sys.executable, "-m", "phjax", "live", f"poses:{src}", "--duration",
+                             "0.3", "--quiet"], stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not _usr1_ignored(proc.pid):  # main has started
+            assert proc.poll() is None and time.monotonic() < deadline
+            time.sleep(0.005)
+        proc.send_signal(getattr(signal, sig))
+        err = proc.communicate(timeout=300)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert "Traceback" not in err, err
+    if sig == "SIGUSR1":
+        assert proc.returncode == 0, err
+    else:  # interrupted while importing, or stopped by live's handler if it was already there
+        assert (proc.returncode, err.strip()) in {
+            (130, "phjax: interrupted"), (130, "phjax live: interrupted"),
+            (0, "phjax live: stopped by SIGINT during the start; nothing was sent")}, err
+
+
 def test_send_failures_are_reported_and_the_status_interval_is_checked(tmp_path, capsys):
     """Nothing listening on the output port: about half the packets were refused and the run
     said nothing (a mistyped port looked like a working one); --status-interval 0 printed a
