@@ -64,6 +64,7 @@ from .kalman import (
     _linear_predict,
     _measurement_validity,
     _rot_matrices,
+    _turn,
     _rot_predict,
     _rot_update,
     _select,
@@ -582,7 +583,7 @@ def imm_predict_pose(
     weights = [mu, mu, mu * ca][:config.order]
     p, v = _extrapolate_derivatives(
         [w @ state.x[:, 3 * i : 3 * i + 3] for i, w in enumerate(weights)], dt)
-    qs = quat_normalize(quat_mul(quat_from_rotvec(state.w * dt), state.q))
+    qs = quat_normalize(quat_mul(quat_from_rotvec(_turn(state.w, dt)), state.q))
     ref = _reference(state.rot_log_mu, qs)
     delta, _ = _tangent(qs, ref)
     mur = jnp.exp(state.rot_log_mu)

@@ -384,9 +384,19 @@ def _rot_model(config: KalmanConfig, w, dt):
     return _rot_matrices(config.rot_process_noise, w, dt)
 
 
+def _turn(w, dt):
+    """The rotation vector ``w dt`` of a prediction over ``dt``, with its gradient cut across a
+    gap longer than :data:`SMOOTH_MAX_GAP`: there the turn (often many turns) is chaotic in
+    ``w``, and its exact derivative grew ~``dt`` per gap (1e9 after three 150 s gaps),
+    swamping a tuning gradient. The value is kept; the two sides of such a gap are
+    differentiated apart, as the smoother smooths them apart."""
+    turn = w * dt
+    return jnp.where(dt > SMOOTH_MAX_GAP, lax.stop_gradient(turn), turn)
+
+
 def _rot_matrices(rot_process_noise, w, dt):
     """:func:`_rot_model` for the angular-acceleration spectral density ``rot_process_noise``."""
-    phi = w * dt
+    phi = _turn(w, dt)
     k = _hat(phi)
     k2 = k @ k
     c0, c1, c2, d1, d2 = _so3_coeffs(jnp.sum(phi * phi))
@@ -582,7 +592,7 @@ def _rot_predict(q, w, pr, f, qn, dt):
     var = jnp.diagonal(pr, axis1=-2, axis2=-1)
     over = var > ceiling * ceiling
     d = jnp.where(over, ceiling * jax.lax.rsqrt(jnp.where(over, var, 1)), 1)
-    return quat_normalize(quat_mul(quat_from_rotvec(w * dt), q)), pr * d[..., :, None] * d[..., None, :]
+    return quat_normalize(quat_mul(quat_from_rotvec(_turn(w, dt)), q)), pr * d[..., :, None] * d[..., None, :]
 
 
 def _inject(dtheta, q, pr):
@@ -804,8 +814,26 @@ def rts_smooth(config: KalmanConfig, filtered_states: KalmanState) -> KalmanStat
     eye3 = jnp.eye(3, dtype=dtype)
     zero3 = jnp.zeros((3, 3), dtype)
 
-    def body(nxt: KalmanState, cur: KalmanState):
-        dt = jnp.maximum(nxt.t - cur.t, 0).astype(dtype)
+    final_update = last.last_update
+
+    def body(nxt_in: KalmanState, cur: KalmanState):
+        dt_in = jnp.maximum(nxt_in.t - cur.t, 0).astype(dtype)
+        # After the last accepted measurement there is nothing to smooth with: the filtered
+        # state is the smoothed one (exactly), so a state is smoothed only against a next one
+        # at or before that measurement's time (smoothing the last measured state against its
+        # own prediction over a 10 s gap gave float32 NaN), and the recursion through a long
+        # tail of lost frames (the size-class padding: 1 s apart) is left out: in float32 its
+        # covariances lost positive-definiteness and the Cholesky's NaN reached every real
+        # frame. Likewise across a pause longer than SMOOTH_MAX_GAP: the prediction over it (a
+        # rotation w dt of many turns, a position v dt of km) linearises nothing, and
+        # smoothing with it put the poses before a 5 min pause up to 180 degrees off; the two
+        # sides are smoothed apart.
+        use = (cur.initialized & nxt_in.initialized & (nxt_in.t <= final_update)
+               & (dt_in <= SMOOTH_MAX_GAP))
+        # a state left as filtered is smoothed (unused) against itself over dt = 0: the step
+        # it skips gave NaN (float32, a 3 h gap) that the select passed on to gradients
+        nxt = _select(use, nxt_in, cur)
+        dt = jnp.where(use, dt_in, 0)
         # position: exact linear RTS
         f, qmat = _pos_model(config, dt)
         x_pred, p_pred = _linear_predict(cur.x, cur.P, f, qmat)
@@ -828,21 +856,9 @@ def rts_smooth(config: KalmanConfig, filtered_states: KalmanState) -> KalmanStat
             cur.t, x_s, p_s, q_s, cur.w + delta[3:], pr_s, cur.initialized, cur.last_update,
             cur.part_updates,
         )
-        # after the last accepted measurement there is nothing to smooth with: the filtered
-        # state is the smoothed one (exactly), so a state is smoothed only against a next one
-        # at or before that measurement's time (smoothing the last measured state against its
-        # own prediction over a 10 s gap gave float32 NaN), and the recursion through a long tail of lost
-        # frames (the size-class padding: 1 s apart) is left out: in float32 its covariances
-        # lost positive-definiteness and the Cholesky's NaN reached every real frame
-        # Likewise across a pause longer than SMOOTH_MAX_GAP: the prediction over it (a
-        # rotation w dt of many turns, a position v dt of km) linearises nothing, and smoothing
-        # with it put the poses before a 5 min pause up to 180 degrees off; the two sides are
-        # smoothed apart
-        informed = (nxt.t <= final_update) & (dt <= SMOOTH_MAX_GAP)
-        out = _select(cur.initialized & nxt.initialized & informed, smoothed, cur)
+        out = _select(use, smoothed, cur)
         return out, out
 
-    final_update = last.last_update
     _, sm = lax.scan(body, last, rest, reverse=True)
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]], 0), sm, last)
 
@@ -862,7 +878,7 @@ def predict_pose(
     """
     _, dt = _clamped_time(state, t)
     p, v = _extrapolate_derivatives([state.x[3 * i : 3 * i + 3] for i in range(config.order)], dt)
-    q = quat_normalize(quat_mul(quat_from_rotvec(state.w * dt), state.q))
+    q = quat_normalize(quat_mul(quat_from_rotvec(_turn(state.w, dt)), state.q))
     return p, q, v, state.w
 
 
