@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -236,8 +238,6 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     finally:
         if usr1 is not None:
-            import signal
-
             signal.signal(signal.SIGUSR1, usr1)
 
 
@@ -246,12 +246,10 @@ def _hold_usr1():
 
     ``phjax live`` re-centres on SIGUSR1 once its own handler is installed; before that the
     signal's default action killed the process (status 138) when a script sent it early."""
-    import signal
-    import threading
-
     if not hasattr(signal, "SIGUSR1") or threading.current_thread() is not threading.main_thread():
         return None
-    return signal.signal(signal.SIGUSR1, signal.SIG_IGN)
+    previous = signal.signal(signal.SIGUSR1, signal.SIG_IGN)
+    return signal.SIG_DFL if previous is None else previous  # None: set outside Python
 
 
 def _run(argv: list[str] | None, usr1) -> int:
@@ -263,8 +261,6 @@ def _run(argv: list[str] | None, usr1) -> int:
     except SystemExit as stop:  # --help (0) or a usage error (2, its line already printed)
         return stop.code if isinstance(stop.code, int) else 2
     if usr1 is not None and args.command != "live":  # only live handles it (once started)
-        import signal
-
         signal.signal(signal.SIGUSR1, usr1)  # (put back again, harmlessly, by main)
     from ..io import TrajectoryWarning
     from ._cache import cache_disabled, compilation_cache
