@@ -64,13 +64,13 @@ from .kalman import (
     _linear_predict,
     _measurement_validity,
     _rot_matrices,
-    _turn,
     _rot_predict,
     _rot_update,
     _select,
     _so3_left_jacobian_inv,
     _spd_inverse,
     _sym,
+    _turn,
 )
 from .models import ConstantAcceleration, ConstantVelocity
 
