@@ -15,6 +15,7 @@ import re
 import signal
 import sys
 import threading
+import warnings
 from pathlib import Path
 
 __all__ = [
@@ -216,7 +217,12 @@ def read_input(path, format: str = "auto", *, min_poses: int = 2, measurements: 
     """
     import numpy as np
 
-    from ..io import TrajectoryFormatError, read_trajectory_spec, split_trajectory_name
+    from ..io import (
+        TrajectoryFormatError,
+        TrajectoryWarning,
+        read_trajectory_spec,
+        split_trajectory_name,
+    )
 
     spec, _ = split_trajectory_name(path)
     p = Path(spec)
@@ -246,10 +252,6 @@ def read_input(path, format: str = "auto", *, min_poses: int = 2, measurements: 
             "one part alone", path=path)
     for part, ok, other in (("position", p_ok, "orientation"), ("orientation", q_ok, "position")):
         if not ok.any():  # one part alone is allowed, but not silently
-            import warnings
-
-            from ..io import TrajectoryWarning
-
             warnings.warn(f"{os.fspath(path)}: no row holds a valid {part} ({other} only); the "
                           f"results have no {part} (NaN in written files, '-' in tables)",
                           TrajectoryWarning, stacklevel=2)
