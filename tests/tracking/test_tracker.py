@@ -537,7 +537,7 @@ def test_gradients_across_long_pauses_stay_finite_and_bounded(dtype):
     3e9 (float64) after three 150 s pauses, and the smoother's skipped step over a 3 h pause
     gave float32 NaN through the select. Now the turn's gradient is cut across pauses longer
     than SMOOTH_MAX_GAP (values unchanged) and a skipped smoother step computes nothing.
-    Measured: reconstruct <= 36, the Kalman stream <= 94, in both dtypes; bounds 1e3.
+    Measured: reconstruct <= 37, the Kalman stream <= 48, in both dtypes; bounds 1e3.
     (The IMM stream's gradient on this input still grows through its mode probabilities:
     README, Tuning.)"""
     rng = np.random.default_rng(0)
