@@ -13,7 +13,14 @@ import jax
 import numpy as np
 import pytest
 from conftest import shared_path
-from live_helpers import UdpListener, angle_steps, listener, model_cache, smooth_motion  # noqa: F401
+from live_helpers import (  # noqa: F401
+    StallProbe,
+    UdpListener,
+    angle_steps,
+    listener,
+    model_cache,
+    smooth_motion,
+)
 
 from phjax.cli import main
 from phjax.io import Trajectory, read_tum, write_tum
@@ -53,10 +60,12 @@ def test_acceptance_synthetic_opentrack(listener, model_cache, tmp_path, cli_jax
     (the 121 frames of 4 s at 30 Hz, rendered before the run: about 30 s on 2 cores)."""
     log = tmp_path / "sent.tum"
     rate = 120.0
-    rc = main(["live", f"synthetic:{ACCEPTANCE_FRAMES}", "--output", f"opentrack://127.0.0.1:{listener.port}",
-               "--rate", str(rate), "--duration", "4", "--log", str(log), "--model-dir",
-               str(model_cache), "--status-interval", "2", "--realtime"])
-    listener.close()
+    with StallProbe() as probe:
+        rc = main(["live", f"synthetic:{ACCEPTANCE_FRAMES}", "--output",
+                   f"opentrack://127.0.0.1:{listener.port}", "--rate", str(rate), "--duration", "4",
+                   "--log", str(log), "--model-dir", str(model_cache), "--status-interval", "2",
+                   "--realtime"])
+        listener.close()
     err = capsys.readouterr().err
     assert rc == 0, err
     arrival = np.array([a for a, _ in listener.packets])
@@ -72,13 +81,23 @@ def test_acceptance_synthetic_opentrack(listener, model_cache, tmp_path, cli_jax
           f"{1e3 * np.median(iv):.2f} ms p99 {1e3 * np.percentile(iv, 99):.2f} ms max "
           f"{1e3 * iv.max():.2f} ms")
     print(err.strip().splitlines()[-2:])
+    print(probe.summary())
     # exactly what was logged was sent (log and datagrams in the same order)
     assert sent.num_samples == n
     expect = np.array([opentrack_values(p, q) for p, q in zip(sent.positions, sent.quaternions)])
     np.testing.assert_allclose(vals, expect, rtol=0, atol=1e-9)
-    # rate and jitter
+    # rate and jitter. An interval over 3 periods that the stall probe saw the host stall in
+    # too (a gap of a period or more on one of its CPUs) is the host's, not the tracker's (CI
+    # on 2026-12-02: 16 missed deadlines, intervals up to 59 ms, 7 camera frames late in the
+    # front-end's process as well; never seen on an idle machine, nor with both cores busy
+    # with other work: p99 9.4 and 14 ms); the host's may not take more than a tenth of the run
     assert 0.9 * rate <= (n - 1) / span <= 1.1 * rate
-    assert np.percentile(iv, 99) <= 3.0 / rate
+    long = iv > 3.0 / rate
+    host = np.zeros_like(long)
+    host[long] = probe.covered(arrival[:-1][long], arrival[1:][long], min_gap=1.0 / rate)
+    print(f"intervals over 3 periods: {long.sum()}, {host.sum()} of them host stalls")
+    assert iv[host].sum() <= 0.1 * span, probe.summary()
+    assert np.percentile(iv[~host], 99) <= 3.0 / rate, probe.summary()
     # smoothness: no step above 1 cm or 2 degrees per render period between consecutive
     # datagrams. Per period of the poses' own times: a render sample that missed its deadline
     # (a stalled host; the rate and jitter bounds above limit those) leaves a gap over which
