@@ -45,6 +45,7 @@ from __future__ import annotations
 import math
 import socket
 import struct
+import threading
 import urllib.parse
 from pathlib import Path
 
@@ -251,12 +252,15 @@ class OscOutput(_UdpOutput):
 class TumLog(Output):
     """A TUM file of every sent pose (``t x y z qx qy qz qw``, shortest round-trip floats).
 
-    Lines are buffered and flushed every ``flush_interval`` seconds of sample time (once a
-    second by default) and on :meth:`close`.
+    :meth:`send` only queues the pose: a thread of the log's own formats and writes the lines
+    every ``flush_interval`` seconds, and :meth:`close` writes the rest, so that a write held
+    up by the disk (a page under writeback, a slow or network file system) never holds up the
+    render loop that sends. A failed write (a full disk) is raised, naming the log, by the
+    next :meth:`send` or by :meth:`close`; the lines not written then are lost.
 
     Arguments:
         path: the file (created or truncated).
-        flush_interval: seconds of sample time ``t`` between flushes.
+        flush_interval: seconds between writes.
     """
 
     def __init__(self, path, flush_interval: float = 1.0):
@@ -267,29 +271,56 @@ class TumLog(Output):
             raise OutputError(f"cannot write the log {path}: {e.strerror}") from None
         self._f.write("# timestamp tx ty tz qx qy qz qw\n")
         self._flush_interval = flush_interval
-        self._last_flush = None
+        self._rows: list[tuple] = []
+        self._lock = threading.Lock()  # the queued rows
+        self._error: OutputError | None = None
+        self._closing = threading.Event()
         self.lines = 0
+        self._writer = threading.Thread(target=self._write_main, name="phjax-live-log",
+                                        daemon=True)
+        self._writer.start()
 
     def send(self, t, position, quaternion) -> None:
-        p = np.asarray(position, np.float64).tolist()
-        q = np.asarray(quaternion, np.float64).tolist()
-        row = [float(t), *p, q[1], q[2], q[3], q[0]]
+        if self._error is not None:
+            raise self._error
+        p = np.asarray(position, np.float64)
+        q = np.asarray(quaternion, np.float64)
+        with self._lock:
+            self._rows.append((float(t), *p.tolist(), *q[[1, 2, 3, 0]].tolist()))
+        self.lines += 1
+
+    def _write_main(self) -> None:
+        while not self._closing.wait(self._flush_interval):
+            if not self._write():
+                return
+
+    def _write(self) -> bool:
+        """Write the queued rows and flush; False (the error kept) if that failed."""
+        with self._lock:  # held for the swap only: a send never waits for the disk
+            rows, self._rows = self._rows, []
+        if self._error is not None or self._f.closed:
+            return False
         try:
-            self._f.write(" ".join(map(repr, row)) + "\n")
-            self.lines += 1
-            if self._last_flush is None or t - self._last_flush >= self._flush_interval:
-                self._f.flush()
-                self._last_flush = t
-        except OSError as e:  # a full disk: the run ends, naming the log
-            raise OutputError(f"cannot write the log {self.url}: {e.strerror or e}") from None
+            self._f.write("".join(" ".join(map(repr, row)) + "\n" for row in rows))
+            self._f.flush()
+        except OSError as e:
+            self._error = OutputError(f"cannot write the log {self.url}: {e.strerror or e}")
+            return False
+        return True
 
     def close(self) -> None:
-        if not self._f.closed:
-            try:
-                self._f.close()  # flushes
-            except OSError as e:  # the last lines are lost: say so
-                raise OutputError(f"cannot write the log {self.url}: {e.strerror or e}"
-                                  ) from None
+        self._closing.set()
+        if self._writer.is_alive() and self._writer is not threading.current_thread():
+            self._writer.join()
+        if self._f.closed:
+            return
+        self._write()  # the writer has ended: the file is this thread's now
+        try:
+            self._f.close()
+        except OSError:  # the flush of what a failed write left in the buffer
+            pass
+        if self._error is not None:  # the last lines are lost: say so
+            raise self._error
 
 
 def _port(text: str | None, default: int, url: str) -> int:

@@ -136,6 +136,61 @@ def test_tum_log_round_trip(tmp_path):
     np.testing.assert_array_equal(raw[:, 4:], np.c_[q[:, 1:], q[:, :1]])
 
 
+class _SlowFile:
+    """A text file whose writes block until ``release`` is set (a disk held up), then fail
+    with ENOSPC once ``full`` is set."""
+
+    def __init__(self, f):
+        import threading
+
+        self.f, self.release, self.full, self.writes = f, threading.Event(), False, 0
+
+    def write(self, text):
+        assert self.release.wait(10)
+        if self.full:
+            raise OSError(28, "No space left on device")
+        self.writes += 1
+        return self.f.write(text)
+
+    def __getattr__(self, name):
+        return getattr(self.f, name)
+
+
+def test_tum_log_never_holds_up_the_sender(tmp_path):
+    """A write held up by the disk (here 0.3 s and more) does not hold up ``send``: the lines
+    are written by the log's thread, all of them, in order; a later failure (a full disk) is
+    raised by the next ``send`` and by ``close``, naming the log (was: written and flushed in
+    the render thread, which waited for the disk)."""
+    import time
+
+    log = TumLog(tmp_path / "x.tum", flush_interval=0.02)
+    slow = log._f = _SlowFile(log._f)
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    worst = 0.0
+    for k in range(40):
+        t = time.perf_counter()
+        log.send(k / 120, np.array([k * 1e-3, 0.0, 0.0]), q)
+        worst = max(worst, time.perf_counter() - t)
+        time.sleep(1 / 120)  # 0.33 s: the writer is blocked in its first write all along
+    assert worst < 0.05 and slow.writes == 0
+    slow.release.set()
+    log.close()
+    traj = read_tum(tmp_path / "x.tum")
+    np.testing.assert_array_equal(traj.times, np.arange(40) / 120)
+    np.testing.assert_array_equal(traj.positions[:, 0], np.arange(40) * 1e-3)
+
+    log = TumLog(tmp_path / "y.tum", flush_interval=0.01)
+    slow = log._f = _SlowFile(log._f)
+    slow.full = True
+    slow.release.set()
+    log.send(0.0, np.zeros(3), q)
+    time.sleep(0.2)  # the writer's write failed
+    with pytest.raises(OutputError, match=r"cannot write the log .*y\.tum: No space left"):
+        log.send(0.01, np.zeros(3), q)
+    with pytest.raises(OutputError, match="No space left"):
+        log.close()
+
+
 @pytest.mark.parametrize("url, msg", [
     ("http://127.0.0.1:4242", "unknown output"),
     ("opentrack://", "missing host"),
