@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import gc
 import math
 import signal
 import sys
@@ -16,6 +15,7 @@ from .._live_defaults import LIVE_NOISE_WINDOW
 from ._common import (
     add_format_argument,
     check_lookahead,
+    defer_interrupt,
     file_name,
     finish_background_compilations,
     FPS_RANGE,
@@ -39,16 +39,6 @@ def _hz(rate: float) -> str:
 
 class _Interrupted(BaseException):  # not caught by a library's "except Exception"
     """A stop signal while ``phjax live`` is still starting (its name as the message)."""
-
-
-def _in_gc_callback(frame) -> bool:
-    """Whether ``frame`` runs inside a garbage-collector callback (XLA registers one)."""
-    codes = {getattr(cb, "__code__", None) for cb in gc.callbacks}
-    while frame is not None:
-        if frame.f_code in codes:
-            return True
-        frame = frame.f_back
-    return False
 
 
 def _abandon(lt, source) -> None:
@@ -85,7 +75,7 @@ def cmd_live(args) -> int:
         nonlocal stop_asked
         if not running:  # still starting (frames rendering, compiling): abandon the start
             stop_asked = signal.Signals(signum).name  # checked again once started
-            if not _in_gc_callback(frame):  # raised there, Python would print and drop it
+            if not defer_interrupt(signum, frame):  # (in an import or a gc callback: later)
                 raise _Interrupted(stop_asked)
             return
         lt.request_stop()
