@@ -1,5 +1,5 @@
 """``python -m phjax``: the command-line interface (see ``phjax --help``)."""
 
-from .cli._main import main
+from .cli import main
 
 raise SystemExit(main())

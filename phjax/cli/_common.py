@@ -19,12 +19,9 @@ import warnings
 from pathlib import Path
 
 __all__ = [
-    "cancel_deferred_interrupts",
     "check_lookahead",
-    "defer_interrupt",
     "finish_background_compilations",
     "hold_signals",
-    "on_interrupt",
     "overwritten_input",
     "Parser",
     "add_format_argument",
@@ -422,63 +419,6 @@ def add_sensor_arguments(parser, seed_help: str = "random seed (default 0)") -> 
     parser.add_argument("--jitter", type=nonnegative_float, default=0.0,
                         help="timestamp jitter, fraction of the period")
     parser.add_argument("--seed", type=seed_int, default=0, help=seed_help)
-
-
-def _in_gc_callback(frame) -> bool:
-    """Whether ``frame`` runs inside a garbage-collector callback (XLA registers one)."""
-    import gc
-
-    codes = {getattr(cb, "__code__", None) for cb in gc.callbacks}
-    while frame is not None:
-        if frame.f_code in codes:
-            return True
-        frame = frame.f_back
-    return False
-
-
-def _in_import(frame) -> bool:
-    """Whether ``frame`` runs inside an ``import`` (a module's code, or a C extension's
-    initialisation calling back into Python)."""
-    while frame is not None:
-        if frame.f_code.co_filename.startswith("<frozen importlib"):
-            return True
-        frame = frame.f_back
-    return False
-
-
-def defer_interrupt(signum: int, frame) -> bool:
-    """For a signal handler about to raise (Ctrl-C): whether the exception must wait, and if
-    so, the signal is sent again 20 ms later (until the handler may raise).
-
-    Raised inside an import, the exception crashed the process when it interrupted a C
-    extension's initialisation half-way (``jaxlib``: SIGSEGV, status -11); raised inside a
-    garbage-collector callback, Python printed and dropped it (the command ran on as if no
-    Ctrl-C had come). Both within the first second of a command, while JAX is imported."""
-    if not (_in_import(frame) or _in_gc_callback(frame)):
-        return False
-    again = threading.Timer(0.02, os.kill, (os.getpid(), signum))
-    again.daemon = True
-    _DEFERRED.append(again)
-    again.start()
-    return True
-
-
-#: signals :func:`defer_interrupt` is to send again (``phjax.cli.main`` cancels those left
-#: when the command has ended: the Ctrl-C came as it finished)
-_DEFERRED: list[threading.Timer] = []
-
-
-def cancel_deferred_interrupts() -> None:
-    """Cancel the signals :func:`defer_interrupt` has yet to send again."""
-    while _DEFERRED:
-        _DEFERRED.pop().cancel()
-
-
-def on_interrupt(signum, frame):
-    """The command's SIGINT handler until one of its own takes over: Python's
-    ``KeyboardInterrupt``, raised where that is safe (:func:`defer_interrupt`)."""
-    if not defer_interrupt(signum, frame):
-        raise KeyboardInterrupt
 
 
 def _holder(prog: str):

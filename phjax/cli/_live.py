@@ -15,7 +15,6 @@ from .._live_defaults import LIVE_NOISE_WINDOW
 from ._common import (
     add_format_argument,
     check_lookahead,
-    defer_interrupt,
     file_name,
     finish_background_compilations,
     FPS_RANGE,
@@ -26,6 +25,7 @@ from ._common import (
     positive_float,
     replaced_note,
 )
+from ._signals import defer_interrupt
 
 #: accepted ``--fov`` (horizontal field of view, degrees; ``--head-size`` and ``--ipd``: the
 #: library's ranges): values outside are typing errors (a missing decimal point), and the
@@ -75,7 +75,7 @@ def cmd_live(args) -> int:
         nonlocal stop_asked
         if not running:  # still starting (frames rendering, compiling): abandon the start
             stop_asked = signal.Signals(signum).name  # checked again once started
-            if not defer_interrupt(signum, frame):  # (in an import or a gc callback: later)
+            if not defer_interrupt(signum, frame):  # (an import, a gc callback, JAX: later)
                 raise _Interrupted(stop_asked)
             return
         lt.request_stop()

@@ -29,14 +29,13 @@ import numpy as np
 from ._common import (
     Parser,
     add_format_argument,
-    cancel_deferred_interrupts,
     check_fits,
     finish_background_compilations,
     format_user_error,
-    on_interrupt,
     positive_int,
     read_input,
 )
+from ._signals import cancel_deferred_interrupts, hold_sigint
 
 __all__ = ["build_parser", "main"]
 
@@ -232,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
     file, folder, permissions) raised by a command prints ONE line
     ``phjax <command>: error: ...`` on stderr and returns 2; no traceback.
     """
-    sigint = _hold_sigint()
+    sigint = hold_sigint()
     usr1 = _hold_usr1()
     try:  # starting (importing JAX, opening the cache) takes about a second: Ctrl-C is one line
         return _run(argv, usr1)
@@ -245,19 +244,6 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGUSR1, usr1)
         if sigint is not None:
             signal.signal(signal.SIGINT, sigint)
-
-
-def _hold_sigint():
-    """Ctrl-C raises ``KeyboardInterrupt`` only where that is safe (:func:`on_interrupt`: not
-    inside an import or a gc callback, where it crashed the process or was dropped); returns
-    the previous handler (or None: not the main thread, or a SIGINT ignored by the caller)."""
-    if threading.current_thread() is not threading.main_thread():
-        return None
-    previous = signal.getsignal(signal.SIGINT)
-    if previous is not signal.default_int_handler:  # ignored (nohup, '&'), or a caller's own
-        return None
-    signal.signal(signal.SIGINT, on_interrupt)
-    return previous
 
 
 def _hold_usr1():
