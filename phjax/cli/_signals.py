@@ -35,13 +35,23 @@ def _in_import(frame) -> bool:
 
 
 def _in_jax(frame) -> bool:
-    """Whether ``frame`` (the one running when the signal is handled) is JAX's own code: a
-    call into XLA (a compilation checks for signals while it runs) or its Python around it."""
-    filename = frame.f_code.co_filename if frame is not None else ""
+    """Whether the code running at ``frame`` is JAX's: JAX's own frame, or the standard
+    library called by it (the backend's start reads the installed packages' metadata). A
+    compilation checks for signals while it runs; a function of phjax's being traced is not
+    JAX's code (an exception there unwinds the trace as any error does)."""
+    stdlib = os.path.dirname(os.__file__) + os.sep  # (os.py: the standard library's folder)
+
+    def standard(filename: str) -> bool:
+        return filename.startswith("<") or (filename.startswith(stdlib) and not any(
+            part in filename for part in ("site-packages", "dist-packages")))
+
+    while frame is not None and standard(frame.f_code.co_filename):
+        frame = frame.f_back
+    if frame is None:
+        return False
     for name in ("jax", "jaxlib"):
-        module = sys.modules.get(name)
-        folder = os.path.dirname(getattr(module, "__file__", None) or "")
-        if folder and filename.startswith(folder + os.sep):
+        folder = os.path.dirname(getattr(sys.modules.get(name), "__file__", None) or "")
+        if folder and frame.f_code.co_filename.startswith(folder + os.sep):
             return True
     return False
 
@@ -53,14 +63,16 @@ def defer_interrupt(signum: int, frame) -> bool:
     Raised inside an import, the exception crashed the process when it interrupted a C
     extension's initialisation half-way (``jaxlib``: SIGSEGV, status -11); raised inside a
     garbage-collector callback, Python printed and dropped it (the command ran on as if no
-    Ctrl-C had come); raised in JAX's own code, it could stop an XLA compilation half-way,
-    and the process crashed as it exited (SIGSEGV after ``phjax smooth: interrupted``). A
-    running XLA program is not interrupted either way: Python handles the signal after it."""
+    Ctrl-C had come); raised in JAX's code, it could stop an XLA compilation half-way, and
+    the process crashed as it exited (SIGSEGV after ``phjax smooth: interrupted``), or stop
+    the backend's start half-way, and the process waited a minute for its watchdog thread
+    before it exited. A running XLA program is not interrupted either way: Python handles the
+    signal after it."""
     if not (_in_import(frame) or _in_gc_callback(frame) or _in_jax(frame)):
         return False
     again = threading.Timer(0.02, os.kill, (os.getpid(), signum))
     again.daemon = True
-    _DEFERRED.append(again)
+    _DEFERRED[:] = [t for t in _DEFERRED if not t.finished.is_set()] + [again]
     again.start()
     return True
 
@@ -85,8 +97,9 @@ def on_interrupt(signum, frame):
 
 def hold_sigint():
     """Ctrl-C raises ``KeyboardInterrupt`` only where that is safe (:func:`on_interrupt`: not
-    inside an import or a gc callback, where it crashed the process or was dropped); returns
-    the previous handler (or None: not the main thread, or a SIGINT ignored by the caller)."""
+    inside an import, a gc callback or JAX's code, where it crashed the process or was
+    dropped); returns the previous handler (or None: not the main thread, or a SIGINT ignored
+    or handled by the caller, which keeps it)."""
     if threading.current_thread() is not threading.main_thread():
         return None
     previous = signal.getsignal(signal.SIGINT)

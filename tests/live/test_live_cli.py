@@ -252,6 +252,10 @@ def test_process_errors_are_one_line_without_library_logs(tmp_path, model_cache)
 # which is unsafe beside the test runner's threads)
 _EXEC_IGNORING_SIGINT = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
                          "os.execv(sys.argv[1], sys.argv[1:])")
+# ... and with SIGINT at its default, as in a terminal, whatever the test runner's worker has
+# (seen in a full run: a worker ignoring SIGHUP, SIGINT and SIGQUIT after earlier tests, so the
+# commands it started ignored Ctrl-C until live's own handler took over)
+_EXEC_WITH_DEFAULT_SIGINT = _EXEC_IGNORING_SIGINT.replace("SIG_IGN", "SIG_DFL")
 
 
 @pytest.mark.parametrize("sig, ignored", [(signal.SIGTERM, False), (signal.SIGINT, False),
@@ -382,8 +386,9 @@ def test_a_signal_while_the_command_imports_is_one_line_or_nothing(tmp_path, sig
     src = tmp_path / "p.txt"
     write_tum(src, Trajectory(np.arange(30) / 30, np.zeros((30, 3)),
                               np.tile([1.0, 0, 0, 0], (30, 1))))
-    proc = subprocess.Popen([sys.executable, "-m", "phjax", "live", f"poses:{src}", "--duration",
-                             "0.3", "--quiet"], stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-c", _EXEC_WITH_DEFAULT_SIGINT, sys.executable, "-m",
+                             "phjax", "live", f"poses:{src}", "--duration", "0.3", "--quiet"],
+                            stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 60
         while not _usr1_ignored(proc.pid):  # main has started
