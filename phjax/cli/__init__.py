@@ -11,22 +11,33 @@ __all__ = ["build_parser", "main"]
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``phjax`` command; returns the exit status (see
-    :func:`phjax.cli._main.main`). Ctrl-C is one line from the first moment: the safe handler
-    is installed before the command's own imports (NumPy and the parser: a tenth of a second,
-    where a Ctrl-C printed Python's traceback)."""
-    previous = hold_sigint()
-    try:
-        from ._main import main as run
+    """Entry point of the ``phjax`` command; returns the exit status.
 
-        return run(argv)
-    except KeyboardInterrupt:  # deferred through the imports, raised before run's own handling
+    JAX's persistent compilation cache is on while the command runs (see :mod:`._cache`).
+    The one place where user errors become messages: a usage error (argparse) or any
+    ``ValueError`` (including :class:`phjax.io.TrajectoryFormatError`) or ``OSError`` (missing
+    file, folder, permissions) raised by a command prints ONE line
+    ``phjax <command>: error: ...`` on stderr and returns 2; no traceback. Ctrl-C is one
+    line from the first moment (``phjax: interrupted``, 130): the handler of
+    :mod:`._signals` is installed before the command's own imports (NumPy, the parser, JAX),
+    and SIGUSR1 is ignored until ``phjax live`` takes it.
+    """
+    sigint = hold_sigint()
+    usr1 = None
+    try:
+        from ._main import _hold_usr1, _run
+
+        usr1 = _hold_usr1()
+        return _run(argv, usr1)
+    except KeyboardInterrupt:
         print("\nphjax: interrupted", file=sys.stderr)
         return 130
     finally:
         cancel_deferred_interrupts()
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
+        if usr1 is not None:
+            signal.signal(signal.SIGUSR1, usr1)
+        if sigint is not None:
+            signal.signal(signal.SIGINT, sigint)
 
 
 def __getattr__(name: str):

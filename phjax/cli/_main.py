@@ -35,9 +35,8 @@ from ._common import (
     positive_int,
     read_input,
 )
-from ._signals import cancel_deferred_interrupts, hold_sigint
 
-__all__ = ["build_parser", "main"]
+__all__ = ["build_parser"]
 
 
 def _enable_x64():
@@ -222,30 +221,6 @@ def _quiet_opencv() -> None:
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``phjax`` command; returns the exit status.
-
-    JAX's persistent compilation cache is on while the command runs (see :mod:`._cache`).
-    The one place where user errors become messages: a usage error (argparse) or any
-    ``ValueError`` (including :class:`phjax.io.TrajectoryFormatError`) or ``OSError`` (missing
-    file, folder, permissions) raised by a command prints ONE line
-    ``phjax <command>: error: ...`` on stderr and returns 2; no traceback.
-    """
-    sigint = hold_sigint()
-    usr1 = _hold_usr1()
-    try:  # starting (importing JAX, opening the cache) takes about a second: Ctrl-C is one line
-        return _run(argv, usr1)
-    except KeyboardInterrupt:
-        print("\nphjax: interrupted", file=sys.stderr)
-        return 130
-    finally:
-        cancel_deferred_interrupts()
-        if usr1 is not None:
-            signal.signal(signal.SIGUSR1, usr1)
-        if sigint is not None:
-            signal.signal(signal.SIGINT, sigint)
-
-
 def _hold_usr1():
     """Ignore SIGUSR1 while the command starts; returns the previous handler (or None).
 
@@ -306,4 +281,6 @@ def _run(argv: list[str] | None, usr1) -> int:
 
 
 if __name__ == "__main__":
+    from phjax.cli import main
+
     raise SystemExit(main())
