@@ -47,7 +47,8 @@ Conventions and behaviour:
 * ``dt = t - state.t`` is clamped to ``[0, MAX_PREDICT_STEP]`` (60 s): predicting to an
   earlier (or NaN) time is a no-op and the state time never decreases (a late measurement is
   therefore applied at ``state.t``); a longer gap is modelled as 60 s of motion. The orientation
-  error covariance has a ceiling (:data:`ROT_STD_CEILING`: pi rad, 4 pi rad/s).
+  error covariance has ceilings (:data:`ROT_STD_CEILING`: about pi rad, 4 pi rad/s; past the
+  angle's the orientation becomes unknown and uncorrelated with the rate).
 * Missing data: a position with any NaN (or inf, or a component beyond ``max^(1/4)`` of the
   dtype: 1.4e9 m in float32) skips the position update; a quaternion with any
   NaN/inf or zero norm skips the orientation update. Selection uses ``jnp.where`` only, so every
@@ -577,22 +578,41 @@ def _linear_predict(x, p, f, q):
 #: velocity (rad/s). An angle uncertainty beyond pi says nothing more, and without a ceiling a
 #: long loss (minutes without frames) grew Pr past 1e9 in float32, where rounding left it
 #: indefinite: the IMM's likelihoods became NaN for good (25 min away from the camera) and the
-#: single filter was 18 degrees off 5 s after the face came back.
+#: single filter was 18 degrees off 5 s after the face came back. The angle's is a soft ceiling
+#: (:func:`_rot_predict`: its variance stays below twice the square), the rate's a hard one.
 ROT_STD_CEILING = (float(np.pi), 4 * float(np.pi))
 
 
 def _rot_predict(q, w, pr, f, qn, dt):
     """Error-state orientation prediction over ``dt`` with the error-state transition ``F`` and
     process noise ``Q`` (:func:`_rot_matrices`): ``q <- exp(w dt) q`` (normalised),
-    ``Pr <- F Pr F^T + Q`` (module docs), then scaled as ``D Pr D`` with ``D = diag(min(1,
-    ceiling / std))`` where a standard deviation exceeds :data:`ROT_STD_CEILING` (a congruence:
-    ``Pr`` stays positive definite; no change while it is below)."""
+    ``Pr <- F Pr F^T + Q`` (module docs), then the ceilings (:data:`ROT_STD_CEILING`, ``c_a``
+    and ``c_w``), no change while every standard deviation is below its ceiling:
+
+    * **Angle**: where the largest angle variance ``v`` exceeds ``c_a^2``, with
+      ``s = c_a^2 / v``, ``Pr <- s Pr + (1 - s) diag(c_a^2 I, Pr_ww)``: a blend towards "the
+      orientation is unknown, whatever the rate" (isotropic, uncorrelated with the rate; the
+      rate block is unchanged). A scaling that kept the correlation (a congruence) kept what the
+      linearisation of many turns leaves, an angle covariance of rank ~1 and a rate gain of
+      ``rho std_w / pi``: one frame after a 150 s pause set the rate from a wrapped innovation
+      (98 rad/s, more than a 30 Hz stream resolves; the IMM never recovered), and in float32 the
+      innovation covariance of the next frames was too ill-conditioned to invert (NaN
+      gradients). The blend is positive definite (a positive combination of two) and continuous
+      at the ceiling; angle variances stay below ``2 c_a^2``.
+    * **Rate**: ``D Pr D`` with ``D = diag(I, min(1, c_w / std_w))`` (a congruence)."""
     pr = _sym(f @ pr @ f.T + qn)
-    ceiling = jnp.repeat(jnp.asarray(ROT_STD_CEILING, pr.dtype), 3)
-    var = jnp.diagonal(pr, axis1=-2, axis2=-1)
-    over = var > ceiling * ceiling
-    d = jnp.where(over, ceiling * jax.lax.rsqrt(jnp.where(over, var, 1)), 1)
-    return quat_normalize(quat_mul(quat_from_rotvec(_turn(w, dt)), q)), pr * d[..., :, None] * d[..., None, :]
+    c_angle, c_rate = (jnp.asarray(c, pr.dtype) for c in ROT_STD_CEILING)
+    angle = jnp.arange(6) < 3
+    var = jnp.diagonal(pr)
+    v = jnp.max(jnp.where(angle, var, 0))
+    s = jnp.where(v > c_angle**2, c_angle**2 / jnp.where(v > c_angle**2, v, 1), 1)
+    unknown = jnp.where(angle[:, None] & angle[None, :], c_angle**2 * jnp.eye(6, dtype=pr.dtype),
+                        jnp.where(~angle[:, None] & ~angle[None, :], pr, 0))
+    pr = s * pr + (1 - s) * unknown
+    var = jnp.diagonal(pr)
+    over = ~angle & (var > c_rate**2)
+    d = jnp.where(over, c_rate * jax.lax.rsqrt(jnp.where(over, var, 1)), 1)
+    return quat_normalize(quat_mul(quat_from_rotvec(_turn(w, dt)), q)), pr * d[:, None] * d[None, :]
 
 
 def _inject(dtheta, q, pr):

@@ -537,27 +537,32 @@ def test_gradients_across_long_pauses_stay_finite_and_bounded(dtype):
     3e9 (float64) after three 150 s pauses, and the smoother's skipped step over a 3 h pause
     gave float32 NaN through the select. Now the turn's gradient is cut across pauses longer
     than SMOOTH_MAX_GAP (values unchanged) and a skipped smoother step computes nothing.
-    Measured: reconstruct <= 37, the Kalman stream <= 48, in both dtypes; bounds 1e3.
-    (The IMM stream's gradient on this input still grows through its mode probabilities:
-    README, Tuning.)"""
+    Then reconstruct gave <= 37, the Kalman stream <= 48, but the IMM stream (the default) 4e3
+    (float64) and NaN (float32, 1000 s pauses): the orientation ceiling kept the angle-rate
+    correlation of many turns (see the IMM test of the rate after a pause). Measured now, both
+    dtypes: reconstruct <= 19, the Kalman and IMM streams <= 28 (the IMM tested in float32);
+    bound 100."""
     rng = np.random.default_rng(0)
     n = 12
     p = rng.standard_normal((n, 3)) * 0.01
     q = np.tile([1.0, 0, 0, 0], (n, 1)) + rng.standard_normal((n, 4)) * 0.05
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    for fn, config in ((pj.reconstruct, None), (pj.track, pj.TrackerConfig(imm=None))):
+    cases = [(pj.reconstruct, None), (pj.track, pj.TrackerConfig(imm=None))]
+    if dtype == jnp.float32:  # the IMM in the dtype that failed worst (its compile costs 30 s)
+        cases.append((pj.track, None))
+    for fn, config in cases:
         @jax.jit
         @partial(jax.grad, argnums=(0, 1))
         def grads(pp, qq, t, r, fn=fn, config=config):
             P, Q = fn(t, pp, qq, r, dtype=dtype, config=config)
             return jnp.sum(P ** 2) + jnp.sum(Q[..., 1:] ** 2)
 
-        for gap in (150.0, 1e4):  # one program for both
+        for gap in (150.0, 1e3, 1e4):  # one program for all
             t = np.cumsum(np.r_[0, np.where(np.arange(n - 1) % 3 == 1, gap, 1 / 30)])
             r = np.linspace(0, t[-1], 40)
             for g in grads(jnp.asarray(p, dtype), jnp.asarray(q, dtype), t, r):
                 g = np.asarray(g)
-                assert np.isfinite(g).all() and np.abs(g).max() < 1e3, (gap, fn.__name__)
+                assert np.isfinite(g).all() and np.abs(g).max() < 100, (gap, fn.__name__)
 
 
 @pytest.mark.parametrize("gap", [None, 3600.0, 86400.0])
