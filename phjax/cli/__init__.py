@@ -5,7 +5,7 @@ from __future__ import annotations
 import signal
 import sys
 
-from ._signals import cancel_deferred_interrupts, hold_sigint
+from ._signals import cancel_deferred_interrupts, hold_sigint, hold_usr1
 
 __all__ = ["build_parser", "main"]
 
@@ -25,9 +25,9 @@ def main(argv: list[str] | None = None) -> int:
     sigint = hold_sigint()
     usr1 = None
     try:
-        from ._main import _hold_usr1, _run
+        usr1 = hold_usr1()
+        from ._main import _run
 
-        usr1 = _hold_usr1()
         return _run(argv, usr1)
     except KeyboardInterrupt:
         print("\nphjax: interrupted", file=sys.stderr)

@@ -12,16 +12,11 @@ import argparse
 import math
 import os
 import re
-import signal
-import sys
-import threading
 import warnings
 from pathlib import Path
 
 __all__ = [
     "check_lookahead",
-    "finish_background_compilations",
-    "hold_signals",
     "overwritten_input",
     "Parser",
     "add_format_argument",
@@ -419,53 +414,3 @@ def add_sensor_arguments(parser, seed_help: str = "random seed (default 0)") -> 
     parser.add_argument("--jitter", type=nonnegative_float, default=0.0,
                         help="timestamp jitter, fraction of the period")
     parser.add_argument("--seed", type=seed_int, default=0, help=seed_help)
-
-
-def _holder(prog: str):
-    """A SIGINT / SIGTERM handler that does nothing but say, once, that a background
-    compilation is being finished (when one runs)."""
-    said = False
-
-    def hold(signum, frame):
-        nonlocal said
-        from .._jit import background_compilations
-
-        if not said and background_compilations():
-            print(f"{prog}: finishing a background compilation, a few seconds",
-                  file=sys.stderr, flush=True)
-            said = True
-
-    hold.holds = True  # marks a holder: finish_background_compilations keeps it (says once)
-    return hold
-
-
-def hold_signals(prog: str) -> None:
-    """Hold Ctrl-C and SIGTERM off (:func:`_holder`) in the main thread, until the caller
-    restores its handlers: for the end of a command whose optimised program may still be
-    compiling in the background (see :func:`finish_background_compilations`)."""
-    if threading.current_thread() is threading.main_thread():
-        handler = _holder(prog)
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, handler)
-
-
-def finish_background_compilations(prog: str) -> None:
-    """Wait for phjax's background compilations (:class:`phjax._jit.Tiered`: a few seconds of
-    one core after an early stop) with Ctrl-C and SIGTERM held off, then restore the
-    handlers found. The interpreter waits for them at exit in any case, and a Ctrl-C that
-    interrupts that wait aborts the process from inside XLA (``terminate called``); a signal
-    here says what is happening, once."""
-    from .._jit import background_compilations
-
-    threads = background_compilations()
-    if not threads or threading.current_thread() is not threading.main_thread():
-        return
-    found = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    if not getattr(found[signal.SIGINT], "holds", False):  # already held: say it once
-        hold_signals(prog)
-    try:
-        for th in threads:
-            th.join()
-    finally:
-        for sig, handler in found.items():
-            signal.signal(sig, handler)

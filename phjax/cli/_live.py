@@ -16,16 +16,14 @@ from ._common import (
     add_format_argument,
     check_lookahead,
     file_name,
-    finish_background_compilations,
     FPS_RANGE,
     float_between,
-    hold_signals,
     nonnegative_int,
     overwritten_input,
     positive_float,
     replaced_note,
 )
-from ._signals import defer_interrupt
+from ._signals import defer_interrupt, finish_background_compilations, hold_signals
 
 #: accepted ``--fov`` (horizontal field of view, degrees; ``--head-size`` and ``--ipd``: the
 #: library's ranges): values outside are typing errors (a missing decimal point), and the

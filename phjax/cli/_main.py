@@ -19,7 +19,6 @@ import argparse
 import os
 import signal
 import sys
-import threading
 import time
 import warnings
 from pathlib import Path
@@ -30,11 +29,11 @@ from ._common import (
     Parser,
     add_format_argument,
     check_fits,
-    finish_background_compilations,
     format_user_error,
     positive_int,
     read_input,
 )
+from ._signals import finish_background_compilations
 
 __all__ = ["build_parser"]
 
@@ -219,17 +218,6 @@ def _quiet_opencv() -> None:
     process."""
     os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
-
-
-def _hold_usr1():
-    """Ignore SIGUSR1 while the command starts; returns the previous handler (or None).
-
-    ``phjax live`` re-centres on SIGUSR1 once its own handler is installed; before that the
-    signal's default action killed the process (status 138) when a script sent it early."""
-    if not hasattr(signal, "SIGUSR1") or threading.current_thread() is not threading.main_thread():
-        return None
-    previous = signal.signal(signal.SIGUSR1, signal.SIG_IGN)
-    return signal.SIG_DFL if previous is None else previous  # None: set outside Python
 
 
 def _run(argv: list[str] | None, usr1) -> int:

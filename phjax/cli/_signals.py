@@ -1,6 +1,9 @@
-"""Ctrl-C for the ``phjax`` command: ``KeyboardInterrupt``, raised only where that is safe.
+"""Signals of the ``phjax`` command: Ctrl-C (``KeyboardInterrupt``, raised only where that is
+safe), SIGUSR1 held until ``phjax live`` takes it, and Ctrl-C / SIGTERM held while a
+background compilation finishes.
 
-Light on purpose (no NumPy, no JAX): the command installs it before importing anything else.
+Light on purpose (no NumPy, no JAX at import): the command installs its handlers before
+importing anything else.
 """
 
 from __future__ import annotations
@@ -11,7 +14,15 @@ import signal
 import sys
 import threading
 
-__all__ = ["cancel_deferred_interrupts", "defer_interrupt", "hold_sigint", "on_interrupt"]
+__all__ = [
+    "cancel_deferred_interrupts",
+    "defer_interrupt",
+    "finish_background_compilations",
+    "hold_sigint",
+    "hold_signals",
+    "hold_usr1",
+    "on_interrupt",
+]
 
 
 def _in_gc_callback(frame) -> bool:
@@ -107,3 +118,64 @@ def hold_sigint():
         return None
     signal.signal(signal.SIGINT, on_interrupt)
     return previous
+
+
+def hold_usr1():
+    """Ignore SIGUSR1 while the command starts; returns the previous handler (or None).
+
+    ``phjax live`` re-centres on SIGUSR1 once its own handler is installed; before that the
+    signal's default action killed the process (status 138) when a script sent it early."""
+    if not hasattr(signal, "SIGUSR1") or threading.current_thread() is not threading.main_thread():
+        return None
+    previous = signal.signal(signal.SIGUSR1, signal.SIG_IGN)
+    return signal.SIG_DFL if previous is None else previous  # None: set outside Python
+
+
+def _holder(prog: str):
+    """A SIGINT / SIGTERM handler that does nothing but say, once, that a background
+    compilation is being finished (when one runs)."""
+    said = False
+
+    def hold(signum, frame):
+        nonlocal said
+        from .._jit import background_compilations
+
+        if not said and background_compilations():
+            print(f"{prog}: finishing a background compilation, a few seconds",
+                  file=sys.stderr, flush=True)
+            said = True
+
+    hold.holds = True  # marks a holder: finish_background_compilations keeps it (says once)
+    return hold
+
+
+def hold_signals(prog: str) -> None:
+    """Hold Ctrl-C and SIGTERM off (:func:`_holder`) in the main thread, until the caller
+    restores its handlers: for the end of a command whose optimised program may still be
+    compiling in the background (see :func:`finish_background_compilations`)."""
+    if threading.current_thread() is threading.main_thread():
+        handler = _holder(prog)
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, handler)
+
+
+def finish_background_compilations(prog: str) -> None:
+    """Wait for phjax's background compilations (:class:`phjax._jit.Tiered`: a few seconds of
+    one core after an early stop) with Ctrl-C and SIGTERM held off, then restore the
+    handlers found. The interpreter waits for them at exit in any case, and a Ctrl-C that
+    interrupts that wait aborts the process from inside XLA (``terminate called``); a signal
+    here says what is happening, once."""
+    from .._jit import background_compilations
+
+    threads = background_compilations()
+    if not threads or threading.current_thread() is not threading.main_thread():
+        return
+    found = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    if not getattr(found[signal.SIGINT], "holds", False):  # already held: say it once
+        hold_signals(prog)
+    try:
+        for th in threads:
+            th.join()
+    finally:
+        for sig, handler in found.items():
+            signal.signal(sig, handler)
