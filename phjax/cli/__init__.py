@@ -23,9 +23,8 @@ def main(argv: list[str] | None = None) -> int:
     and SIGUSR1 is ignored until ``phjax live`` takes it.
     """
     sigint = hold_sigint()
-    usr1 = None
+    usr1 = hold_usr1()
     try:
-        usr1 = hold_usr1()
         from ._main import _run
 
         return _run(argv, usr1)

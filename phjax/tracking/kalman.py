@@ -604,13 +604,12 @@ def _rot_predict(q, w, pr, f, qn, dt):
     c_angle, c_rate = (jnp.asarray(c, pr.dtype) for c in ROT_STD_CEILING)
     angle = jnp.arange(6) < 3
     var = jnp.diagonal(pr)
-    v = jnp.max(jnp.where(angle, var, 0))
+    v = jnp.max(var[:3])
     s = jnp.where(v > c_angle**2, c_angle**2 / jnp.where(v > c_angle**2, v, 1), 1)
-    unknown = jnp.where(angle[:, None] & angle[None, :], c_angle**2 * jnp.eye(6, dtype=pr.dtype),
-                        jnp.where(~angle[:, None] & ~angle[None, :], pr, 0))
-    pr = s * pr + (1 - s) * unknown
-    var = jnp.diagonal(pr)
-    over = ~angle & (var > c_rate**2)
+    # the blend: the rate block kept, the rest scaled by s, (1 - s) c_a^2 on the angle diagonal
+    rate_block = ~angle[:, None] & ~angle[None, :]
+    pr = jnp.where(rate_block, pr, s * pr) + (1 - s) * c_angle**2 * jnp.diag(angle.astype(pr.dtype))
+    over = ~angle & (var > c_rate**2)  # (rate variances: unchanged by the blend)
     d = jnp.where(over, c_rate * jax.lax.rsqrt(jnp.where(over, var, 1)), 1)
     return quat_normalize(quat_mul(quat_from_rotvec(_turn(w, dt)), q)), pr * d[:, None] * d[None, :]
 
